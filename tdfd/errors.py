@@ -1,0 +1,102 @@
+"""The package's exception types.
+
+Every error tdfd raises on bad input or a hardware fault derives from :class:`TdfdError`,
+and also from the builtin it refines (``ValueError``, ``TypeError``, ``TimeoutError``, …) so
+callers can catch either.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "TdfdError",
+    "CameraError",
+    "InputError",
+    "ShapeError",
+    "DTypeError",
+    "NonFiniteError",
+    "RangeError",
+    "ModelError",
+    "DriverError",
+    "ProtocolError",
+    "ChecksumError",
+    "DeviceErrorReply",
+    "LensTimeoutError",
+    "LensConnectionError",
+    "LensRangeError",
+]
+
+
+class TdfdError(Exception):
+    """Base class of every error raised by tdfd."""
+
+
+class CameraError(TdfdError, ValueError):
+    """An invalid camera description (non-positive aperture, unknown preset, …)."""
+
+
+class InputError(TdfdError, ValueError):
+    """Input data that cannot be processed (base of the specific input errors)."""
+
+
+class ShapeError(InputError):
+    """A tensor or array of the wrong shape (rank, channel count, size smaller than a tile)."""
+
+
+class DTypeError(TdfdError, TypeError):
+    """A tensor or array of the wrong dtype."""
+
+
+class NonFiniteError(InputError):
+    """NaN or infinite values where finite numbers are required."""
+
+
+class RangeError(InputError):
+    """Values far outside their documented range (e.g. intensities outside [0, 1])."""
+
+
+class ModelError(TdfdError, RuntimeError):
+    """An ONNX model or checkpoint that is missing, corrupt or does not match the contract."""
+
+
+class DriverError(TdfdError, RuntimeError):
+    """Base class of lens-driver errors."""
+
+
+class ProtocolError(DriverError):
+    """Bytes from the lens driver that do not form a valid reply."""
+
+
+class ChecksumError(ProtocolError):
+    """A reply whose CRC-16/ARC does not match its payload."""
+
+
+class DeviceErrorReply(DriverError):
+    """The driver answered with an error frame (``E`` + id, or a bare ``N``).
+
+    Attributes:
+        code: the error id (1 CRC failed, 2 not available in this firmware type,
+            3 not recognised, 4 lens incompatible; 1 for a bare ``N``).
+    """
+
+    MEANINGS = {
+        1: "CRC check failed",
+        2: "command not available in this firmware type",
+        3: "command not recognised",
+        4: "lens incompatible",
+    }
+
+    def __init__(self, code: int, message: str | None = None) -> None:
+        self.code = int(code)
+        super().__init__(message or f"device error {self.code}: {self.MEANINGS.get(self.code, 'unknown error')}")
+
+
+class LensTimeoutError(DriverError, TimeoutError):
+    """No (complete) reply from the lens driver within the timeout, after all retries."""
+
+
+class LensConnectionError(DriverError, ConnectionError):
+    """The serial port vanished or could not be used."""
+
+
+class LensRangeError(DriverError, ValueError):
+    """A requested current or focal power outside the lens's reported limits."""
