@@ -1,0 +1,156 @@
+r"""Tile power spectra by a strided-convolution DFT (ONNX-friendly, no ``torch.fft``).
+
+Each ``T x T`` tile (stride ``S``, the contract grid of :mod:`tdfd.grid`) is optionally
+pre-whitened, multiplied by a separable window and transformed with a 2-D DFT restricted
+to the frequency band ``|k| <= K`` bins. The DFT is two strided ``conv2d`` passes: windowed
+cos/sin kernels along W (stride ``S``), then along H, combined into the power of each
+half-plane bin:
+
+.. math:: P(\pm k_y, k_x) = CC^2 + SS^2 + SC^2 + CS^2 \mp 2 (CC\,SS - SC\,CS),
+
+with ``CC = sum w cos cos x`` etc. This equals ``|FFT(w * tile)|^2`` (tested against
+``torch.fft``) and exports to ONNX at any opset as plain convolutions.
+
+Pre-whitening (on by default) applies the discrete Laplacian ``4x - sum(4 neighbours)``
+before the window. Both images get the same linear filter, so the ratio ``G1/G2`` of
+paper eq. 10 is unchanged, but the steep ``1/f^2`` spectrum of natural textures becomes
+nearly flat, which cuts the window leakage that biases the ratio fit at large blur. The
+filter also removes each tile's mean (no DC), which keeps float32 error low.
+
+Frequencies: bin ``(k_y, k_x)`` has angular frequency ``omega = 2 pi |k| / T`` rad/pixel.
+
+Example:
+    >>> import torch
+    >>> spec = TileSpectra(tile=32, stride=16, max_bin=8)
+    >>> p = spec(torch.rand(2, 1, 64, 80))
+    >>> p.shape  # (B, bins, h, w)
+    torch.Size([2, 145, 3, 4])
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from kornia.filters import get_hanning_kernel1d
+from torch import nn
+
+from ..errors import InputError, ShapeError
+from ..grid import check_grid
+
+__all__ = [
+    "periodic_hann",
+    "laplacian_prewhiten",
+    "prewhiten_gain",
+    "TileSpectra",
+    "fft_tile_power",
+]
+
+
+def periodic_hann(size: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Periodic Hann window of length ``size`` (DFT-even), built from kornia's symmetric
+    Hann kernel of length ``size + 1`` without its last tap."""
+    return get_hanning_kernel1d(size + 1, dtype=dtype)[:size].contiguous()
+
+
+_LAPLACE = torch.tensor([[0.0, -1.0, 0.0], [-1.0, 4.0, -1.0], [0.0, -1.0, 0.0]])
+
+
+def laplacian_prewhiten(x: torch.Tensor) -> torch.Tensor:
+    """Discrete Laplacian ``4x - (up + down + left + right)``, replicate-padded, ``(B, C, H, W)``."""
+    b, c, h, w = x.shape
+    k = _LAPLACE.to(x)[None, None]
+    y = F.conv2d(F.pad(x.reshape(b * c, 1, h, w), (1, 1, 1, 1), mode="replicate"), k)
+    return y.reshape(b, c, h, w)
+
+
+def prewhiten_gain(omega_y: torch.Tensor, omega_x: torch.Tensor) -> torch.Tensor:
+    """Power gain ``|L(omega)|^2`` of :func:`laplacian_prewhiten`: ``(4 - 2cos wy - 2cos wx)^2``."""
+    return (4.0 - 2.0 * torch.cos(omega_y) - 2.0 * torch.cos(omega_x)) ** 2
+
+
+class TileSpectra(nn.Module):
+    """Windowed power spectra of every tile on the contract grid.
+
+    Args:
+        tile: tile side ``T`` in pixels (>= 8).
+        stride: tile stride ``S`` in pixels.
+        max_bin: highest frequency bin ``K`` kept (``|k_x|, |k_y| <= K``); defaults to
+            ``round(0.3 T)`` (0.3 cycles/pixel).
+        prewhiten: apply :func:`laplacian_prewhiten` first.
+
+    Shape:
+        - Input: ``(B, 1, H, W)``.
+        - Output: ``(B, N, h, w)`` with ``N = (K+1)^2 + K^2`` half-plane bins; see
+          :attr:`ky`, :attr:`kx` for each bin's integer frequency (``kx >= 0``).
+    """
+
+    def __init__(self, tile: int = 64, stride: int = 32, max_bin: int | None = None, prewhiten: bool = True) -> None:
+        super().__init__()
+        check_grid(tile, stride)
+        k = int(round(0.3 * tile)) if max_bin is None else int(max_bin)
+        if not 1 <= k <= tile // 2:
+            raise InputError(f"max_bin must be in [1, tile/2], got {k}")
+        self.tile, self.stride, self.max_bin, self.prewhiten = int(tile), int(stride), k, bool(prewhiten)
+        win = periodic_hann(tile, torch.float64)
+        n = torch.arange(tile, dtype=torch.float64)
+        f = torch.arange(k + 1, dtype=torch.float64)
+        phase = 2.0 * math.pi * f[:, None] * n[None, :] / tile  # (K+1, T)
+        trig = torch.cat([torch.cos(phase), torch.sin(phase)], 0) * win  # (2(K+1), T)
+        self.register_buffer("kernel_w", trig[:, None, None, :], persistent=False)  # along W
+        self.register_buffer("kernel_h", trig.repeat(2 * (k + 1), 1)[:, None, :, None], persistent=False)
+        kk = torch.arange(k + 1)
+        ky_pos, kx_pos = torch.meshgrid(kk, kk, indexing="ij")  # (+ky, kx) bins, ky-major
+        ky_neg, kx_neg = torch.meshgrid(kk[1:], kk[1:], indexing="ij")
+        self.register_buffer("ky", torch.cat([ky_pos.reshape(-1), -ky_neg.reshape(-1)]), persistent=False)
+        self.register_buffer("kx", torch.cat([kx_pos.reshape(-1), kx_neg.reshape(-1)]), persistent=False)
+        self.window_energy = float((win[:, None] * win[None, :]).pow(2).sum())
+        self.window_sum = float(win.sum() ** 2)
+
+    @property
+    def num_bins(self) -> int:
+        return int(self.kx.numel())
+
+    def omega(self) -> torch.Tensor:
+        """Angular frequency ``2 pi |k| / T`` (rad/pixel) of each bin, ``(N,)``."""
+        return 2.0 * math.pi * torch.sqrt(self.ky.double() ** 2 + self.kx.double() ** 2) / self.tile
+
+    def noise_gain(self) -> torch.Tensor:
+        """Expected power per bin of unit-variance white noise, ``(N,)`` (window energy times
+        the pre-whitening gain)."""
+        g = torch.full((self.num_bins,), self.window_energy, dtype=torch.float64)
+        if self.prewhiten:
+            wy = 2.0 * math.pi * self.ky.double() / self.tile
+            wx = 2.0 * math.pi * self.kx.double() / self.tile
+            g = g * prewhiten_gain(wy, wx)
+        return g
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.ndim != 4 or x.shape[1] != 1:
+            raise ShapeError(f"expected (B, 1, H, W), got {tuple(x.shape)}")
+        if self.prewhiten:
+            x = laplacian_prewhiten(x)
+        k1 = self.max_bin + 1
+        kw, kh = self.kernel_w.to(x.dtype), self.kernel_h.to(x.dtype)
+        rows = F.conv2d(x, kw, stride=(1, self.stride))  # (B, 2K1, H, w): [cos kx | sin kx]
+        a = F.conv2d(rows, kh, stride=(self.stride, 1), groups=2 * k1)  # (B, 2K1 * 2K1, h, w)
+        b, _, h, w = a.shape
+        a = a.reshape(b, 2, k1, 2, k1, h, w)  # (x-trig, kx, y-trig, ky, h, w)
+        cc, cs = a[:, 0, :, 0], a[:, 1, :, 0]  # y-cos applied to x-cos / x-sin
+        sc, ss = a[:, 0, :, 1], a[:, 1, :, 1]  # y-sin applied to x-cos / x-sin
+        base = cc * cc + ss * ss + sc * sc + cs * cs  # (B, kx, ky, h, w)
+        cross = 2.0 * (cc * ss - sc * cs)
+        p_pos = (base - cross).transpose(1, 2).reshape(b, k1 * k1, h, w)  # ky-major
+        p_neg = (base + cross)[:, 1:, 1:].transpose(1, 2).reshape(b, (k1 - 1) ** 2, h, w)
+        return torch.cat([p_pos, p_neg], 1)
+
+
+def fft_tile_power(x: torch.Tensor, tile: int, stride: int, prewhiten: bool = True) -> torch.Tensor:
+    """Reference implementation with ``torch.fft``: ``|FFT2(window * tile)|^2``,
+    shape ``(B, h, w, T, T)`` (not exportable; used to test :class:`TileSpectra`)."""
+    if prewhiten:
+        x = laplacian_prewhiten(x)
+    win = periodic_hann(tile, x.dtype)
+    tiles = x[:, 0].unfold(1, tile, stride).unfold(2, tile, stride)  # (B, h, w, T, T)
+    return torch.fft.fft2(tiles * (win[:, None] * win[None, :])).abs() ** 2
