@@ -6,7 +6,8 @@ Two operations, both batched and differentiable with respect to the image, the b
 * :func:`defocus_uniform`: a fronto-parallel plane, one blur per sample (paper eq. 8,
   ``g = h * f``).
 * :func:`defocus_layered`: a depth map with spatially varying blur. The scene is split into
-  soft layers in signed blur ``sigma`` (which is linear in inverse depth, eq. 4); each layer's
+  soft layers in signed blur ``sigma`` (which is linear in inverse depth, eq. 4), centred on
+  a fixed grid of multiples of the layer spacing; each layer's
   colour and coverage are blurred with that layer's PSF and composited front to back, so a
   near object's blurred edge covers the background behind it (occlusion), and the result is
   normalised by the composited coverage. Layers whose centres are within one spacing of each
@@ -160,15 +161,22 @@ def defocus_layered(image: torch.Tensor, sigma: torch.Tensor, shape: PSFShape = 
         raise NonFiniteError("sigma contains NaN or inf")
     if layer_spacing <= 0 or max_layers < 2:
         raise InputError("layer_spacing must be > 0 and max_layers >= 2")
+    # layer centres on a fixed grid k * spacing (independent of the data, so small changes of
+    # sigma move weight between layers smoothly and derivatives are consistent)
     flat = sigma.detach().reshape(b, -1)
-    lo, hi = flat.min(1).values, flat.max(1).values
-    span = float((hi - lo).max())
-    n_layers = int(min(max_layers, max(2, math.ceil(span / layer_spacing) + 1)))
-    steps = torch.linspace(0.0, 1.0, n_layers, dtype=sigma.dtype, device=sigma.device)
-    spacing = ((hi - lo) / (n_layers - 1)).clamp_min(1e-6)  # (B,)
-    centres = lo[:, None] + steps[None, :] * (hi - lo)[:, None]  # (B, L), ascending
+    lo_all, hi_all = float(flat.min()), float(flat.max())
+    spacing = float(layer_spacing)
+    first, last = math.floor(lo_all / spacing), math.ceil(hi_all / spacing)
+    if last - first + 1 > max_layers:
+        spacing *= math.ceil((last - first) / (max_layers - 1))
+        first, last = math.floor(lo_all / spacing), math.ceil(hi_all / spacing)
+    last = max(last, first + 1)
+    n_layers = last - first + 1
+    grid = torch.arange(first, last + 1, dtype=sigma.dtype, device=sigma.device) * spacing
+    centres = grid[None, :].expand(b, n_layers)  # (B, L), ascending = near to far
+    lo, hi = centres[:, 0], centres[:, -1]
     # hat-function weights: each pixel split between its two neighbouring layer centres
-    t = (sigma - centres[:, :, None, None]) / spacing[:, None, None, None]  # (B, L, H, W)
+    t = (sigma - centres[:, :, None, None]) / spacing  # (B, L, H, W)
     alpha = (1.0 - t.abs()).clamp_min(0.0)
     size = kernel_size_for(float(torch.maximum(lo.abs(), hi.abs()).max()), shape)
     pad = size // 2

@@ -53,7 +53,7 @@ Number = Union[float, torch.Tensor]
 def _t(x: Number, like: torch.Tensor | None = None) -> torch.Tensor:
     if isinstance(x, torch.Tensor):
         return x
-    dtype = like.dtype if like is not None else torch.get_default_dtype()
+    dtype = like.dtype if like is not None else torch.float64  # Python floats keep double precision
     device = like.device if like is not None else None
     return torch.as_tensor(x, dtype=dtype, device=device)
 
