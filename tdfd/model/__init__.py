@@ -1,0 +1,10 @@
+"""The combined model: analytic Fourier-ratio DFD plus a learned refinement CNN.
+
+:class:`DFDModel` is what training fits, what ``models/reference.*`` holds and what the
+export turns into ONNX.
+"""
+
+from .combined import MODEL_FORMAT, DFDModel, RefinedResult, num_features, tile_features
+from .refine import RefineNet, ResidualBlock
+
+__all__ = ["DFDModel", "RefinedResult", "RefineNet", "ResidualBlock", "tile_features", "num_features", "MODEL_FORMAT"]

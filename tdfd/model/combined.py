@@ -1,0 +1,294 @@
+r"""The combined model: analytic Fourier-ratio DFD + a learned refinement on the tile grid.
+
+:class:`DFDModel` runs :class:`~tdfd.dfd.FourierRatioDFD` (reused, not copied), turns its
+per-tile intermediates into features (:func:`tile_features`), and lets a small CNN
+(:class:`~tdfd.model.refine.RefineNet`) predict
+
+* a correction ``dq`` of the analytic inverse depth in dioptres,
+  ``q = clamp(q_analytic + dq)`` and ``depth = 1 / q`` (metres);
+* a Laplace scale ``b`` of the relative inverse-depth error ``(q - q_true) / q_true``,
+  as a log-scale correction of the analytic estimator's own predicted relative error,
+  ``log b = clamp(log rel_error) + s``. The confidence is the monotone map
+  ``conf = 1 / (1 + (b / b0)^2)`` with ``b0 = confidence_scale`` (the median absolute
+  relative error of a Laplace error is ``b ln 2``), so a tile whose error the network
+  expects to be large gets a small confidence.
+
+Training minimises the Laplace negative log-likelihood ``|e| / b + log b`` (see
+:mod:`training`), which makes ``b`` and hence the confidence calibrated.
+
+With the refinement head at zero (a fresh model) ``depth`` equals ``depth_analytic``
+exactly. The forward pass has no data-dependent Python control flow and no ``torch.fft``,
+so it exports to ONNX (turn input validation off first: :meth:`DFDModel.set_validate`).
+
+Example:
+    >>> import torch
+    >>> from tdfd import Camera
+    >>> model = DFDModel(Camera.preset("reference"), tile=32, stride=32, hidden=8, blocks=1)
+    >>> i1 = torch.rand(2, 1, 64, 96, generator=torch.Generator().manual_seed(0))
+    >>> depth, conf, depth_analytic = model(i1, i1.flip(-1))
+    >>> depth.shape, bool(torch.equal(depth, depth_analytic))
+    (torch.Size([2, 1, 2, 3]), True)
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from ..camera import Camera
+from ..dfd.fourier_ratio import DFDResult, FourierRatioDFD, validate_pair
+from ..errors import InputError, ModelError
+from ..optics.thin_lens import camera_sigmas
+from .refine import RefineNet
+
+__all__ = ["DFDModel", "RefinedResult", "tile_features", "num_features", "MODEL_FORMAT"]
+
+logger = logging.getLogger(__name__)
+
+#: Format tag written into the JSON side file of :meth:`DFDModel.save`.
+MODEL_FORMAT = "tdfd.dfd_model/1"
+
+#: Bounds of the log of the analytic relative error used as the base of the log-scale.
+_LOG_REL_BOUNDS = (-7.0, 1.0)
+#: Bounds of the final log-scale (relative error from 1e-4 to ~7).
+_LOG_SCALE_BOUNDS = (-9.0, 2.0)
+
+
+def num_features(num_rings: int) -> int:
+    """Number of channels :func:`tile_features` produces for ``num_rings`` rings."""
+    return 3 * num_rings + 7
+
+
+def _square_difference_scale(camera: Camera, mu: float) -> float:
+    near, far = camera.depth_range_m
+    s = [camera_sigmas(camera, d, mu) for d in (near, far)]
+    return max(abs(float(a) ** 2 - float(b) ** 2) for a, b in s) or 1.0
+
+
+def tile_features(result: DFDResult, analytic: FourierRatioDFD) -> torch.Tensor:
+    """Per-tile features for the refinement CNN from the analytic estimator's intermediates.
+
+    Channels (``R`` rings): per-ring square-difference estimate ``-y_r / omega_r^2``
+    (normalised, gated), per-ring gate, per-ring log SNR, then the analytic inverse depth
+    normalised to the working range, the fitted ``sigma1^2 - sigma2^2`` (normalised), log
+    predicted relative error, log fit residual, log spectral energy of both images, and the
+    analytic confidence.
+
+    Args:
+        result: :meth:`FourierRatioDFD.analyse` output.
+        analytic: the estimator that produced it (ring frequencies, camera, limits).
+
+    Returns:
+        ``(B, 3R + 7, h, w)`` features, finite for every finite input.
+    """
+    dt = result.log_ratio.dtype
+    near, far = analytic.camera.depth_range_m
+    q_lo, q_hi = analytic.inv_depth_limits
+    q_mid, q_half = 0.5 * (1.0 / near + 1.0 / far), 0.5 * (1.0 / near - 1.0 / far)
+    d_scale = _square_difference_scale(analytic.camera, analytic.mu)
+    gate = torch.sigmoid(2.0 * (result.ring_snr - math.log(analytic.snr_threshold)))
+    omega2 = analytic.ring_omega2.to(dt)
+    ring_d = (-result.log_ratio / omega2 / d_scale).clamp(-4.0, 4.0) * gate
+    feats = [
+        ring_d,
+        gate,
+        result.ring_snr.clamp(-5.0, 20.0),
+        (result.inverse_depth.clamp(q_lo, q_hi) - q_mid) / q_half,
+        (result.square_difference / d_scale).clamp(-4.0, 4.0),
+        torch.log(result.rel_error.clamp_min(1e-6)).clamp(-10.0, 5.0),
+        torch.log(result.residual.clamp_min(1e-6)).clamp(-10.0, 10.0),
+        result.energy.clamp(-30.0, 30.0),
+        result.confidence,
+    ]
+    return torch.cat(feats, 1)
+
+
+@dataclass
+class RefinedResult:
+    """Everything :meth:`DFDModel.analyse` computes, per tile ``(B, 1, h, w)``.
+
+    Attributes:
+        depth: refined object distance in metres.
+        confidence: in [0, 1].
+        depth_analytic: analytic depth in metres.
+        inverse_depth: refined inverse depth in dioptres (1/m).
+        log_scale: log of the predicted Laplace scale of the relative error.
+        features: the CNN's input ``(B, C, h, w)``.
+        analytic: the analytic estimator's :class:`~tdfd.dfd.DFDResult`.
+    """
+
+    depth: torch.Tensor
+    confidence: torch.Tensor
+    depth_analytic: torch.Tensor
+    inverse_depth: torch.Tensor
+    log_scale: torch.Tensor
+    features: torch.Tensor
+    analytic: DFDResult
+
+
+def _exporting() -> bool:
+    return bool(torch.compiler.is_exporting() or torch.compiler.is_compiling() or torch.jit.is_tracing()
+                or torch.onnx.is_in_onnx_export())
+
+
+class DFDModel(nn.Module):
+    """Analytic DFD plus learned refinement: two frames in, depth and confidence out.
+
+    Args:
+        camera: the camera description (the analytic layer's optics and working range).
+        tile: tile side in pixels.
+        stride: tile stride in pixels.
+        analytic: extra keyword arguments of :class:`~tdfd.dfd.FourierRatioDFD`.
+        confidence_scale: Laplace scale ``b0`` of the relative error at which the
+            confidence is 0.5.
+        correction_scale: dioptres per unit of the CNN's first output.
+        **refine_config: keyword arguments of :class:`~tdfd.model.refine.RefineNet`
+            (``hidden``, ``blocks``, ``kernel_size``).
+
+    Shape:
+        - ``image_f1``, ``image_f2``: ``(B, 1, H, W)`` float32, linear intensity in [0, 1].
+        - Output: ``(depth, confidence, depth_analytic)``, each ``(B, 1, h, w)`` float32 on
+          the contract grid (``CONTRACT.md`` section 2); depths in metres.
+    """
+
+    def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, *, analytic: dict[str, Any] | None = None,
+                 confidence_scale: float = 0.01, correction_scale: float = 1.0, **refine_config: Any) -> None:
+        super().__init__()
+        analytic = dict(analytic or {})
+        for key in ("tile", "stride", "validate", "camera"):
+            if key in analytic:
+                raise InputError(f"analytic option {key!r} is set by DFDModel itself")
+        if not (confidence_scale > 0 and correction_scale > 0):
+            raise InputError("confidence_scale and correction_scale must be > 0")
+        refine_config = dict(refine_config)
+        refine_config.pop("in_channels", None)
+        refine_config.pop("out_channels", None)
+        self.camera = camera
+        self.tile, self.stride = int(tile), int(stride)
+        self.analytic_config = analytic
+        self.confidence_scale, self.correction_scale = float(confidence_scale), float(correction_scale)
+        self.analytic = FourierRatioDFD(camera, tile=tile, stride=stride, validate=False, **analytic)
+        try:
+            self.refine = RefineNet(num_features(self.analytic.num_rings), **refine_config)
+        except TypeError as exc:
+            raise InputError(f"bad refine option: {exc}") from exc
+        self.validate = True
+
+    # ------------------------------------------------------------------ options
+    def set_validate(self, flag: bool) -> "DFDModel":
+        """Turn input validation on or off (off for export); returns ``self``."""
+        self.validate = bool(flag)
+        return self
+
+    def grid_shape(self, height: int, width: int) -> tuple[int, int]:
+        """Tile-grid shape ``(h, w)`` for a ``height`` x ``width`` image."""
+        return self.analytic.grid_shape(height, width)
+
+    def config(self) -> dict[str, Any]:
+        """The JSON-serialisable description that :meth:`save` writes next to the weights."""
+        from .. import __version__
+
+        return {"format": MODEL_FORMAT, "tdfd_version": __version__, "camera": self.camera.to_dict(),
+                "camera_name": self.camera.name, "tile": self.tile, "stride": self.stride,
+                "analytic": self.analytic_config, "confidence_scale": self.confidence_scale,
+                "correction_scale": self.correction_scale,
+                "refine": {k: v for k, v in self.refine.config().items() if k not in ("in_channels", "out_channels")}}
+
+    # ------------------------------------------------------------------ compute
+    def analyse(self, image_f1: torch.Tensor, image_f2: torch.Tensor) -> RefinedResult:
+        """Run the whole model and return every intermediate (see :class:`RefinedResult`)."""
+        if self.validate and not _exporting():
+            validate_pair(image_f1, image_f2, self.tile)
+        r = self.analytic.analyse(image_f1, image_f2)
+        wdt = self.refine.head.weight.dtype
+        feats = tile_features(r, self.analytic).to(wdt)
+        out = self.refine(feats)
+        q_lo, q_hi = self.analytic.inv_depth_limits
+        q_a = r.inverse_depth.to(wdt).clamp(q_lo, q_hi)
+        q = (q_a + self.correction_scale * out[:, 0:1]).clamp(q_lo, q_hi)
+        base = torch.log(r.rel_error.to(wdt).clamp_min(1e-6)).clamp(*_LOG_REL_BOUNDS)
+        log_scale = (base + out[:, 1:2]).clamp(*_LOG_SCALE_BOUNDS)
+        ratio = torch.exp(log_scale) / self.confidence_scale
+        conf = 1.0 / (1.0 + ratio * ratio)
+        return RefinedResult(depth=1.0 / q, confidence=conf, depth_analytic=1.0 / q_a, inverse_depth=q,
+                             log_scale=log_scale, features=feats, analytic=r)
+
+    def forward(self, image_f1: torch.Tensor, image_f2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        r = self.analyse(image_f1, image_f2)
+        return r.depth, r.confidence, r.depth_analytic
+
+    # -------------------------------------------------------------- persistence
+    @staticmethod
+    def _paths(path: str | Path) -> tuple[Path, Path]:
+        p = Path(path)
+        stem = p.with_suffix("") if p.suffix in (".safetensors", ".json") else p
+        return stem.with_name(stem.name + ".safetensors"), stem.with_name(stem.name + ".json")
+
+    def save(self, path: str | Path, extra: dict[str, Any] | None = None) -> tuple[Path, Path]:
+        """Write ``<stem>.safetensors`` (weights) and ``<stem>.json`` (config); no pickle.
+
+        Args:
+            path: ``<stem>``, ``<stem>.safetensors`` or ``<stem>.json``.
+            extra: additional JSON-serialisable metadata stored under ``"extra"``.
+
+        Returns:
+            The two paths written.
+        """
+        from safetensors.torch import save_file
+
+        weights, meta = self._paths(path)
+        weights.parent.mkdir(parents=True, exist_ok=True)
+        state = {k: v.detach().to("cpu").contiguous() for k, v in self.state_dict().items()}
+        save_file(state, str(weights), metadata={"format": MODEL_FORMAT})
+        cfg = self.config()
+        if extra:
+            cfg["extra"] = extra
+        meta.write_text(json.dumps(cfg, indent=2, sort_keys=True) + "\n")
+        return weights, meta
+
+    @classmethod
+    def from_config(cls, cfg: dict[str, Any]) -> "DFDModel":
+        """Build an (untrained) model from :meth:`config` output."""
+        if cfg.get("format") != MODEL_FORMAT:
+            raise ModelError(f"not a tdfd DFD model description (format {cfg.get('format')!r}, expected {MODEL_FORMAT!r})")
+        try:
+            camera = Camera.from_dict(cfg["camera"], name=cfg.get("camera_name", "custom"))
+            return cls(camera, tile=cfg["tile"], stride=cfg["stride"], analytic=cfg.get("analytic") or {},
+                       confidence_scale=cfg["confidence_scale"], correction_scale=cfg["correction_scale"], **cfg["refine"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelError(f"invalid model description: {exc!r}") from exc
+
+    @classmethod
+    def load(cls, path: str | Path, map_location: str | torch.device = "cpu") -> "DFDModel":
+        """Load a model written by :meth:`save` (safetensors + JSON).
+
+        Raises:
+            ModelError: a missing, corrupt or mismatching file.
+        """
+        from safetensors import SafetensorError
+        from safetensors.torch import load_file
+
+        weights, meta = cls._paths(path)
+        if not weights.is_file() or not meta.is_file():
+            raise ModelError(f"model files {weights} and {meta} must both exist")
+        try:
+            cfg = json.loads(meta.read_text())
+        except json.JSONDecodeError as exc:
+            raise ModelError(f"{meta} is not valid JSON: {exc}") from exc
+        model = cls.from_config(cfg)
+        try:
+            state = load_file(str(weights), device=str(map_location))
+        except (SafetensorError, OSError, ValueError) as exc:
+            raise ModelError(f"cannot read weights {weights}: {exc}") from exc
+        try:
+            model.load_state_dict(state, strict=True)
+        except RuntimeError as exc:
+            raise ModelError(f"weights {weights} do not match {meta}: {exc}") from exc
+        return model.to(map_location)
