@@ -202,21 +202,46 @@ class DFDModel(nn.Module):
                 "refine": {k: v for k, v in self.refine.config().items() if k not in ("in_channels", "out_channels")}}
 
     # ------------------------------------------------------------------ compute
-    def analyse(self, image_f1: torch.Tensor, image_f2: torch.Tensor) -> RefinedResult:
-        """Run the whole model and return every intermediate (see :class:`RefinedResult`)."""
+    def features(self, image_f1: torch.Tensor, image_f2: torch.Tensor) -> tuple[torch.Tensor, DFDResult]:
+        """The analytic stage: CNN input features ``(B, C, h, w)`` and the analytic result.
+
+        It has no trainable parameters, so training may compute it once per batch (or in a
+        data-loading worker) and call :meth:`head` on the result.
+        """
         if self.validate and not _exporting():
             validate_pair(image_f1, image_f2, self.tile)
         r = self.analytic.analyse(image_f1, image_f2)
+        return tile_features(r, self.analytic).to(self.refine.head.weight.dtype), r
+
+    def head(self, features: torch.Tensor, inverse_depth: torch.Tensor, rel_error: torch.Tensor
+             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The learned stage on precomputed features.
+
+        Args:
+            features: :meth:`features` output ``(B, C, h, w)``.
+            inverse_depth: the analytic (unclamped) inverse depth ``(B, 1, h, w)`` in 1/m.
+            rel_error: the analytic predicted relative error ``(B, 1, h, w)``.
+
+        Returns:
+            ``(inverse_depth, log_scale, confidence, analytic_inverse_depth)``, each
+            ``(B, 1, h, w)``: the refined inverse depth (1/m, inside the extended range), the
+            log Laplace scale of the relative error, the confidence, and the clamped
+            analytic inverse depth.
+        """
         wdt = self.refine.head.weight.dtype
-        feats = tile_features(r, self.analytic).to(wdt)
-        out = self.refine(feats)
+        out = self.refine(features)
         q_lo, q_hi = self.analytic.inv_depth_limits
-        q_a = r.inverse_depth.to(wdt).clamp(q_lo, q_hi)
+        q_a = inverse_depth.to(wdt).clamp(q_lo, q_hi)
         q = (q_a + self.correction_scale * out[:, 0:1]).clamp(q_lo, q_hi)
-        base = torch.log(r.rel_error.to(wdt).clamp_min(1e-6)).clamp(*_LOG_REL_BOUNDS)
+        base = torch.log(rel_error.to(wdt).clamp_min(1e-6)).clamp(*_LOG_REL_BOUNDS)
         log_scale = (base + out[:, 1:2]).clamp(*_LOG_SCALE_BOUNDS)
         ratio = torch.exp(log_scale) / self.confidence_scale
-        conf = 1.0 / (1.0 + ratio * ratio)
+        return q, log_scale, 1.0 / (1.0 + ratio * ratio), q_a
+
+    def analyse(self, image_f1: torch.Tensor, image_f2: torch.Tensor) -> RefinedResult:
+        """Run the whole model and return every intermediate (see :class:`RefinedResult`)."""
+        feats, r = self.features(image_f1, image_f2)
+        q, log_scale, conf, q_a = self.head(feats, r.inverse_depth, r.rel_error)
         return RefinedResult(depth=1.0 / q, confidence=conf, depth_analytic=1.0 / q_a, inverse_depth=q,
                              log_scale=log_scale, features=feats, analytic=r)
 

@@ -1,0 +1,327 @@
+"""Typed training configuration: dataclasses, a file (JSON, TOML, YAML) and ``key=value`` overrides.
+
+Example:
+    >>> cfg = load_config(None, ["optim.lr=0.001", "data.batch_size=8", "model.hidden=16"])
+    >>> cfg.optim.lr, cfg.data.batch_size, cfg.model.hidden
+    (0.001, 8, 16)
+    >>> load_config(None, ["optim.lr=fast"])
+    Traceback (most recent call last):
+    ...
+    training.config.ConfigError: optim.lr: expected float, got 'fast'
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+from tdfd.errors import InputError
+
+__all__ = ["ConfigError", "DataConfig", "ModelConfig", "OptimConfig", "EvalConfig", "TrainConfig",
+           "load_config", "apply_overrides", "config_to_dict", "config_from_dict"]
+
+
+class ConfigError(InputError):
+    """An unknown configuration key, a value of the wrong type, or an unreadable file."""
+
+
+@dataclass
+class DataConfig:
+    """Where training pairs come from.
+
+    Attributes:
+        dataset: ``module:Class`` of the procedural dataset (deterministic per
+            ``(seed, index)``; a ``batch(indices)`` method is used when present).
+        options: keyword arguments for the dataset (image size, scene mix, ...).
+        height, width: training image size in pixels (passed as ``size=(height, width)``).
+        batch_size: pairs per optimisation step (per process under DDP).
+        seed: seed of the training stream.
+        val_seed: seed of the held-out validation set (must differ from ``seed``).
+        val_size: pairs in the validation set.
+        num_workers: DataLoader worker processes generating batches ahead of the loop.
+        prefetch_factor: batches each worker prepares ahead.
+    """
+
+    dataset: str = "data_synth:DefocusPairDataset"
+    options: dict = field(default_factory=dict)
+    height: int = 128
+    width: int = 128
+    batch_size: int = 32
+    seed: int = 0
+    val_seed: int = 1_000_003
+    val_size: int = 256
+    num_workers: int = 1
+    prefetch_factor: int = 4
+
+
+@dataclass
+class ModelConfig:
+    """The combined model (see :class:`tdfd.model.DFDModel`)."""
+
+    camera: str = "reference"
+    tile: int = 64
+    stride: int = 32
+    hidden: int = 32
+    blocks: int = 2
+    kernel_size: int = 3
+    confidence_scale: float = 0.01
+    correction_scale: float = 1.0
+
+
+@dataclass
+class OptimConfig:
+    """Optimiser, schedule and loss.
+
+    Attributes:
+        steps: optimisation steps in total.
+        lr: peak AdamW learning rate (cosine decay after a linear warm-up).
+        min_lr_ratio: final learning rate as a fraction of ``lr``.
+        warmup_steps: linear warm-up steps.
+        weight_decay: AdamW weight decay.
+        grad_clip: gradient-norm clip (0 = off).
+        l1_weight: weight of a plain mean absolute relative error term added to the Laplace
+            NLL (stabilises the start; the NLL alone calibrates the confidence).
+        normaliser_batches: batches used to fit the feature standardisation before step 0.
+    """
+
+    steps: int = 2000
+    lr: float = 3e-3
+    min_lr_ratio: float = 0.02
+    warmup_steps: int = 50
+    weight_decay: float = 1e-4
+    grad_clip: float = 1.0
+    l1_weight: float = 0.2
+    normaliser_batches: int = 4
+
+
+@dataclass
+class EvalConfig:
+    """The final evaluation report (per-distance curves on held-out planes).
+
+    Attributes:
+        distances: number of plane distances, spread evenly in inverse depth over the range.
+        samples_per_distance: held-out pairs per distance.
+        seed: seed of the evaluation scenes (distinct from training and validation).
+        height, width: evaluation image size.
+    """
+
+    distances: int = 8
+    samples_per_distance: int = 8
+    seed: int = 2_000_003
+    height: int = 192
+    width: int = 192
+
+
+@dataclass
+class TrainConfig:
+    """Everything one training run needs.
+
+    Attributes:
+        out_dir: run directory (checkpoints, ``train_log.csv``, report, final model).
+        seed: seed of the model initialisation.
+        device: ``auto`` (CUDA when available), ``cpu`` or ``cuda``/``cuda:N``.
+        threads: torch intra-op threads on CPU (0 = leave torch's default).
+        log_every: steps between CSV log rows.
+        val_every: steps between validations.
+        ckpt_every: steps between checkpoints (the last step always writes one).
+        max_minutes: stop early (with a checkpoint) after this wall time; 0 = no limit.
+        final_eval: write the evaluation report at the end.
+    """
+
+    out_dir: str = "runs/default"
+    seed: int = 0
+    device: str = "auto"
+    threads: int = 0
+    log_every: int = 10
+    val_every: int = 200
+    ckpt_every: int = 100
+    max_minutes: float = 0.0
+    final_eval: bool = True
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+
+# ----------------------------------------------------------------------------- parsing
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _coerce(path: str, tp: Any, value: Any) -> Any:
+    """Convert ``value`` (a parsed file value or an override string) to type ``tp``."""
+    origin = typing.get_origin(tp) or tp
+    if origin is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "1", "yes", "on", "false", "0", "no", "off"):
+            return value.lower() in ("true", "1", "yes", "on")
+        raise ConfigError(f"{path}: expected bool, got {value!r}")
+    if origin is int:
+        if isinstance(value, bool):
+            raise ConfigError(f"{path}: expected int, got {value!r}")
+        if isinstance(value, int):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        if isinstance(value, str):
+            try:
+                return int(value.replace("_", ""))
+            except ValueError:
+                pass
+        raise ConfigError(f"{path}: expected int, got {value!r}")
+    if origin is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        if isinstance(value, str):
+            try:
+                return float(value)
+            except ValueError:
+                pass
+        raise ConfigError(f"{path}: expected float, got {value!r}")
+    if origin is str:
+        if isinstance(value, str):
+            return value
+        raise ConfigError(f"{path}: expected str, got {value!r}")
+    if origin is dict:
+        if isinstance(value, str):
+            try:
+                value = json.loads(value)
+            except json.JSONDecodeError as exc:
+                raise ConfigError(f"{path}: expected a JSON object, got {value!r}") from exc
+        if not isinstance(value, dict):
+            raise ConfigError(f"{path}: expected a mapping, got {value!r}")
+        return dict(value)
+    raise ConfigError(f"{path}: unsupported field type {tp!r}")
+
+
+def config_from_dict(data: dict[str, Any], cls: type = TrainConfig, prefix: str = "") -> Any:
+    """Build a config dataclass from nested dicts, checking keys and value types."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{prefix or 'config'}: expected a mapping, got {type(data).__name__}")
+    hints = _hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ConfigError(f"unknown config key(s) {[prefix + k for k in unknown]}; valid: {sorted(prefix + n for n in names)}")
+    kwargs = {}
+    for name, value in data.items():
+        tp = hints[name]
+        if dataclasses.is_dataclass(tp):
+            kwargs[name] = config_from_dict(value, tp, prefix + name + ".")
+        else:
+            kwargs[name] = _coerce(prefix + name, tp, value)
+    return cls(**kwargs)
+
+
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    """The config as nested plain dicts (JSON-serialisable)."""
+    return dataclasses.asdict(cfg)
+
+
+def apply_overrides(cfg: TrainConfig, overrides: Iterable[str]) -> TrainConfig:
+    """Apply ``section.key=value`` overrides (values parsed by the field's type).
+
+    ``data.options.KEY=VALUE`` sets one dataset option (the value parsed as JSON when it
+    can be, else kept as a string).
+
+    Raises:
+        ConfigError: a malformed override, an unknown key or a value of the wrong type.
+    """
+    cfg = config_from_dict(config_to_dict(cfg))  # a deep copy, validated
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r} must look like key=value")
+        key, raw = item.split("=", 1)
+        parts = key.strip().split(".")
+        target: Any = cfg
+        for i, part in enumerate(parts[:-1]):
+            if isinstance(target, dict):
+                raise ConfigError(f"override {key!r}: cannot index into option {'.'.join(parts[:i])!r}")
+            if not dataclasses.is_dataclass(target) or part not in {f.name for f in dataclasses.fields(target)}:
+                raise ConfigError(f"unknown config key {key!r}")
+            target = getattr(target, part)
+        last = parts[-1]
+        if isinstance(target, dict):  # data.options.KEY
+            try:
+                target[last] = json.loads(raw)
+            except json.JSONDecodeError:
+                target[last] = raw
+            continue
+        fields = {f.name for f in dataclasses.fields(target)}
+        if last not in fields:
+            raise ConfigError(f"unknown config key {key!r}; valid in this section: {sorted(fields)}")
+        tp = _hints(type(target))[last]
+        if dataclasses.is_dataclass(tp):
+            raise ConfigError(f"{key!r} is a section; set one of its keys")
+        setattr(target, last, _coerce(key, tp, raw))
+    return cfg
+
+
+def _read_file(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc}") from exc
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".json":
+            return json.loads(text)
+        if suffix == ".toml":
+            return tomllib.loads(text)
+        if suffix in (".yaml", ".yml"):
+            try:
+                import yaml  # type: ignore[import-not-found]
+            except ImportError as exc:
+                raise ConfigError("YAML configs need PyYAML; use JSON or TOML") from exc
+            return yaml.safe_load(text) or {}
+    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"cannot parse config file {path}: {exc}") from exc
+    raise ConfigError(f"config file {path} must be .json, .toml or .yaml")
+
+
+def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> TrainConfig:
+    """Defaults, then the file (if any), then the overrides; validated.
+
+    Raises:
+        ConfigError: unreadable file, unknown key, wrong type or an invalid value.
+    """
+    cfg = config_from_dict(_read_file(Path(path))) if path else TrainConfig()
+    cfg = apply_overrides(cfg, overrides)
+    validate_config(cfg)
+    return cfg
+
+
+def validate_config(cfg: TrainConfig) -> None:
+    """Check value ranges; raise :class:`ConfigError` naming the first bad one."""
+    checks = [
+        (cfg.data.batch_size >= 1, "data.batch_size must be >= 1"),
+        (cfg.data.val_size >= 1, "data.val_size must be >= 1"),
+        (cfg.data.num_workers >= 0, "data.num_workers must be >= 0"),
+        (cfg.data.prefetch_factor >= 1, "data.prefetch_factor must be >= 1"),
+        (cfg.data.seed != cfg.data.val_seed, "data.val_seed must differ from data.seed (held-out set)"),
+        (":" in cfg.data.dataset, "data.dataset must be 'module:Class'"),
+        (min(cfg.data.height, cfg.data.width) >= cfg.model.tile, "data.height/width must be >= model.tile"),
+        (min(cfg.eval.height, cfg.eval.width) >= cfg.model.tile, "eval.height/width must be >= model.tile"),
+        (cfg.optim.steps >= 1, "optim.steps must be >= 1"),
+        (cfg.optim.lr > 0, "optim.lr must be > 0"),
+        (0 <= cfg.optim.min_lr_ratio <= 1, "optim.min_lr_ratio must be in [0, 1]"),
+        (cfg.optim.warmup_steps >= 0, "optim.warmup_steps must be >= 0"),
+        (cfg.optim.grad_clip >= 0, "optim.grad_clip must be >= 0"),
+        (cfg.optim.l1_weight >= 0, "optim.l1_weight must be >= 0"),
+        (cfg.optim.normaliser_batches >= 1, "optim.normaliser_batches must be >= 1"),
+        (cfg.log_every >= 1 and cfg.val_every >= 1 and cfg.ckpt_every >= 1, "log_every, val_every, ckpt_every must be >= 1"),
+        (cfg.max_minutes >= 0, "max_minutes must be >= 0"),
+        (cfg.threads >= 0, "threads must be >= 0"),
+        (cfg.device == "auto" or cfg.device == "cpu" or cfg.device.startswith("cuda"), "device must be auto, cpu or cuda[:N]"),
+        (cfg.eval.distances >= 2 and cfg.eval.samples_per_distance >= 1, "eval.distances must be >= 2, eval.samples_per_distance >= 1"),
+        (cfg.model.confidence_scale > 0 and cfg.model.correction_scale > 0, "model scales must be > 0"),
+    ]
+    for ok, msg in checks:
+        if not ok:
+            raise ConfigError(msg)

@@ -1,0 +1,345 @@
+"""The training loop: seeds, CPU/CUDA, DDP via ``torchrun``, exact resume, CSV logs, tqdm.
+
+Run ``python -m training --config FILE --set key=value ...`` (see :mod:`training.__main__`).
+Under ``torchrun`` (``WORLD_SIZE`` > 1 in the environment) the process group is
+initialised (NCCL on CUDA, gloo on CPU), the CNN is wrapped in DistributedDataParallel,
+each rank reads its own block of sample indices, and only rank 0 validates and writes.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from tdfd.model import DFDModel
+
+from .config import TrainConfig, config_to_dict
+from .data import Featurizer, FeatureSet, StepBatches, build_model, featurize_dataset, fetch_batch, make_dataset
+from .losses import depth_relative_error, laplace_nll, refinement_loss
+
+__all__ = ["train", "DistInfo", "setup_distributed", "validate", "save_checkpoint", "load_checkpoint",
+           "CHECKPOINT_NAME", "LOG_COLUMNS"]
+
+logger = logging.getLogger("training")
+
+CHECKPOINT_NAME = "checkpoint_last.pt"
+LOG_COLUMNS = ["step", "time_s", "lr", "loss", "nll", "l1", "train_mre", "samples_per_s", "val_nll",
+               "val_mre_refined", "val_mre_analytic", "val_mre_conf_top", "val_mre_conf_bottom", "val_conf_mean"]
+
+
+@dataclass
+class DistInfo:
+    """Process placement: ``rank``, ``world_size``, ``local_rank``, ``device``."""
+
+    rank: int
+    world_size: int
+    local_rank: int
+    device: torch.device
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def setup_distributed(device: str = "auto") -> DistInfo:
+    """Initialise ``torch.distributed`` when launched by ``torchrun`` and pick the device."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    use_cuda = torch.cuda.is_available() if device == "auto" else device.startswith("cuda")
+    if use_cuda:
+        dev = torch.device(f"cuda:{local}" if device in ("auto", "cuda") else device)
+        torch.cuda.set_device(dev)
+    else:
+        dev = torch.device("cpu")
+    if world > 1 and not torch.distributed.is_initialized():
+        torch.distributed.init_process_group(backend="nccl" if use_cuda else "gloo")
+    return DistInfo(rank, world, local, dev)
+
+
+class _Head(nn.Module):
+    """The trainable stage as a module (what DistributedDataParallel wraps)."""
+
+    def __init__(self, model: DFDModel) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, features, inverse_depth, rel_error):
+        return self.model.head(features, inverse_depth, rel_error)
+
+
+def _lr_lambda(cfg: TrainConfig):
+    o = cfg.optim
+
+    def f(step: int) -> float:
+        if step < o.warmup_steps:
+            return (step + 1) / (o.warmup_steps + 1)
+        t = (step - o.warmup_steps) / max(1, o.steps - o.warmup_steps)
+        return o.min_lr_ratio + (1.0 - o.min_lr_ratio) * 0.5 * (1.0 + math.cos(math.pi * min(1.0, t)))
+
+    return f
+
+
+# ----------------------------------------------------------------------------- checkpoints
+def save_checkpoint(path: Path, model: DFDModel, opt: torch.optim.Optimizer, sched: Any, step: int,
+                    cfg: TrainConfig, extra: dict[str, Any] | None = None) -> None:
+    """Write model, optimiser, scheduler, RNG states and step atomically (``torch.save``;
+    read back with ``weights_only=True``)."""
+    state = {
+        "step": int(step),
+        "model": model.state_dict(),
+        "optimizer": opt.state_dict(),
+        "scheduler": sched.state_dict(),
+        "rng_torch": torch.get_rng_state(),
+        "rng_cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+        "config_json": json.dumps(config_to_dict(cfg), sort_keys=True),
+        "extra_json": json.dumps(extra or {}, sort_keys=True),
+    }
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path, model: DFDModel, opt: torch.optim.Optimizer, sched: Any) -> dict[str, Any]:
+    """Restore a checkpoint written by :func:`save_checkpoint`; returns its metadata."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    model.load_state_dict(state["model"])
+    opt.load_state_dict(state["optimizer"])
+    sched.load_state_dict(state["scheduler"])
+    torch.set_rng_state(state["rng_torch"])
+    if torch.cuda.is_available() and state["rng_cuda"]:
+        torch.cuda.set_rng_state_all(state["rng_cuda"])
+    return {"step": int(state["step"]), "config": json.loads(state["config_json"]), "extra": json.loads(state["extra_json"])}
+
+
+# ----------------------------------------------------------------------------- validation
+@torch.no_grad()
+def validate(model: DFDModel, data: FeatureSet, device: torch.device, chunk: int = 64) -> dict[str, float]:
+    """Held-out metrics: Laplace NLL, median absolute relative depth error (refined and
+    analytic), median error in the top and bottom confidence halves, mean confidence."""
+    was_training = model.training
+    model.eval()
+    errs_r, errs_a, confs, nlls = [], [], [], []
+    for b in data.chunks(chunk):
+        b = {k: v.to(device) for k, v in b.items()}
+        q, log_b, conf, q_a = model.head(b["features"], b["inverse_depth"], b["rel_error"])
+        nlls.append(laplace_nll(q, log_b, 1.0 / b["tile_depth"]) * q.numel())
+        errs_r.append(depth_relative_error(1.0 / q, b["tile_depth"]).flatten().cpu())
+        errs_a.append(depth_relative_error(1.0 / q_a, b["tile_depth"]).flatten().cpu())
+        confs.append(conf.flatten().cpu())
+    model.train(was_training)
+    er, ea, c = torch.cat(errs_r), torch.cat(errs_a), torch.cat(confs)
+    order = torch.argsort(c)
+    half = len(order) // 2
+    return {"val_nll": float(sum(nlls) / er.numel()), "val_mre_refined": float(er.median()),
+            "val_mre_analytic": float(ea.median()), "val_mre_conf_top": float(er[order[half:]].median()),
+            "val_mre_conf_bottom": float(er[order[:half]].median()) if half else float("nan"),
+            "val_conf_mean": float(c.mean())}
+
+
+# ----------------------------------------------------------------------------- helpers
+class _CsvLog:
+    """Append-only CSV log; on resume rows at or after the resume step are dropped."""
+
+    def __init__(self, path: Path, resume_step: int | None) -> None:
+        self.path = path
+        rows: list[dict[str, str]] = []
+        if resume_step is not None and path.exists():
+            with path.open() as fh:
+                rows = [r for r in csv.DictReader(fh) if int(r["step"]) <= resume_step]
+        with path.open("w", newline="") as fh:
+            w = csv.DictWriter(fh, LOG_COLUMNS)
+            w.writeheader()
+            w.writerows(rows)
+
+    def write(self, row: dict[str, Any]) -> None:
+        with self.path.open("a", newline="") as fh:
+            csv.DictWriter(fh, LOG_COLUMNS).writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+
+
+def _setup_logging(out: Path, is_main: bool) -> logging.Handler | None:
+    if not is_main:
+        return None
+    handler = logging.FileHandler(out / "train.log")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    return handler
+
+
+@torch.no_grad()
+def fit_normaliser(model: DFDModel, feats: torch.Tensor) -> None:
+    """Per-channel mean/std of the features ``(N, C, h, w)`` into the CNN's standardisation."""
+    x = feats.transpose(0, 1).reshape(feats.shape[1], -1).double()
+    model.refine.set_normaliser(x.mean(1).float(), x.std(1).float())
+
+
+# ----------------------------------------------------------------------------- train
+def train(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
+    """Train the refinement and write the run directory.
+
+    Writes ``config.json``, ``train_log.csv``, ``train.log``, ``checkpoint_last.pt``,
+    ``model.safetensors`` + ``model.json`` and (``final_eval``) ``report.{json,md,png}``
+    into ``cfg.out_dir``.
+
+    Args:
+        cfg: the configuration.
+        resume: continue from ``out_dir/checkpoint_last.pt`` if it exists (exactly: the
+            result equals an uninterrupted run).
+
+    Returns:
+        A summary dict (steps done, final validation metrics, wall time, paths).
+    """
+    t_start = time.perf_counter()
+    dist = setup_distributed(cfg.device)
+    if cfg.threads and dist.device.type == "cpu":
+        torch.set_num_threads(cfg.threads)
+    out = Path(cfg.out_dir)
+    if dist.is_main:
+        out.mkdir(parents=True, exist_ok=True)
+    if dist.world_size > 1:
+        torch.distributed.barrier()
+    handler = _setup_logging(out, dist.is_main)
+    try:
+        return _train(cfg, resume, dist, out, t_start)
+    finally:
+        if handler is not None:
+            logger.removeHandler(handler)
+            handler.close()
+        if dist.world_size > 1 and torch.distributed.is_initialized():
+            torch.distributed.barrier()
+            torch.distributed.destroy_process_group()
+
+
+def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: float) -> dict[str, Any]:
+    torch.manual_seed(cfg.seed)
+    model = build_model(cfg.model)
+    opt = torch.optim.AdamW(model.refine.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(cfg))
+    ckpt = out / CHECKPOINT_NAME
+    start = 0
+    featurizer_factory = lambda: Featurizer(cfg.model)  # noqa: E731
+    train_factory = lambda: make_dataset(cfg.data, cfg.model, cfg.data.seed)  # noqa: E731
+    if resume and ckpt.exists():
+        meta = load_checkpoint(ckpt, model, opt, sched)
+        start = meta["step"]
+        logger.info("resumed from %s at step %d", ckpt, start)
+    else:
+        # feature standardisation from the first batches of the training stream (same on every rank)
+        ds, fz = train_factory(), featurizer_factory()
+        n = cfg.optim.normaliser_batches * cfg.data.batch_size
+        fs = featurize_dataset(ds, fz, n, chunk=cfg.data.batch_size)
+        fit_normaliser(model, fs.features)
+    if dist.is_main:
+        (out / "config.json").write_text(json.dumps(config_to_dict(cfg), indent=2, sort_keys=True) + "\n")
+        n_params = sum(p.numel() for p in model.refine.parameters())
+        logger.info("config %s", json.dumps(config_to_dict(cfg), sort_keys=True))
+        logger.info("device %s, world size %d, %d trainable parameters, steps %d..%d",
+                    dist.device, dist.world_size, n_params, start, cfg.optim.steps)
+    model.to(dist.device)
+    # optimiser state follows the parameters onto the device
+    for st in opt.state.values():
+        for k, v in st.items():
+            if isinstance(v, torch.Tensor) and k != "step":
+                st[k] = v.to(dist.device)
+    head: nn.Module = _Head(model)
+    if dist.world_size > 1:
+        head = nn.parallel.DistributedDataParallel(head, device_ids=[dist.device.index] if dist.device.type == "cuda" else None)
+    val: FeatureSet | None = None
+    if dist.is_main:
+        t0 = time.perf_counter()
+        val_ds = make_dataset(cfg.data, cfg.model, cfg.data.val_seed)
+        val = featurize_dataset(val_ds, featurizer_factory(), cfg.data.val_size, chunk=cfg.data.batch_size)
+        logger.info("validation set: %d pairs (seed %d), %.1f s", len(val), cfg.data.val_seed, time.perf_counter() - t0)
+    log = _CsvLog(out / "train_log.csv", start if resume else None) if dist.is_main else None
+
+    steps = cfg.optim.steps
+    batches = StepBatches(train_factory, featurizer_factory, cfg.data.batch_size, dist.rank, dist.world_size, steps)
+    loader_kw: dict[str, Any] = {"batch_size": None, "sampler": range(start, steps), "num_workers": cfg.data.num_workers}
+    if cfg.data.num_workers > 0:
+        loader_kw.update(prefetch_factor=cfg.data.prefetch_factor, persistent_workers=False)
+    loader = torch.utils.data.DataLoader(batches, **loader_kw)
+    from tqdm import tqdm
+
+    bar = tqdm(total=steps, initial=start, disable=not dist.is_main, desc="train", mininterval=5.0, dynamic_ncols=True)
+    step, stopped_early, last_val = start, False, {}
+    window = {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "n": 0, "t": time.perf_counter(), "samples": 0}
+    model.train()
+    for batch in loader:
+        b = {k: v.to(dist.device, non_blocking=True) for k, v in batch.items()}
+        q, log_b, _conf, _qa = head(b["features"], b["inverse_depth"], b["rel_error"])
+        loss, parts = refinement_loss(q, log_b, b["tile_depth"], cfg.optim.l1_weight)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if cfg.optim.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(model.refine.parameters(), cfg.optim.grad_clip)
+        opt.step()
+        sched.step()
+        step += 1
+        with torch.no_grad():
+            mre = float(depth_relative_error(1.0 / q.detach(), b["tile_depth"]).median())
+        window["loss"] += float(loss.detach())
+        window["nll"] += parts["nll"]
+        window["l1"] += parts["l1"]
+        window["mre"] += mre
+        window["n"] += 1
+        window["samples"] += cfg.data.batch_size * dist.world_size
+        bar.update(1)
+        elapsed_min = (time.perf_counter() - t_start) / 60.0
+        over_time = cfg.max_minutes > 0 and elapsed_min >= cfg.max_minutes
+        if dist.world_size > 1 and cfg.max_minutes > 0:  # all ranks stop together
+            flag = torch.tensor([float(over_time)], device=dist.device)
+            torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+            over_time = bool(flag.item() > 0)
+        last = step == steps or over_time
+        if dist.is_main:
+            row: dict[str, Any] = {}
+            if step % cfg.log_every == 0 or last:
+                n = max(1, window["n"])
+                dt = time.perf_counter() - window["t"]
+                row.update(step=step, time_s=time.perf_counter() - t_start, lr=sched.get_last_lr()[0],
+                           loss=window["loss"] / n, nll=window["nll"] / n, l1=window["l1"] / n,
+                           train_mre=window["mre"] / n, samples_per_s=window["samples"] / max(dt, 1e-9))
+                bar.set_postfix(loss=f"{row['loss']:.3f}", mre=f"{row['train_mre']:.4f}")
+                window = {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "n": 0, "t": time.perf_counter(), "samples": 0}
+            if step % cfg.val_every == 0 or last:
+                last_val = validate(model, val, dist.device)
+                row.update(step=step, time_s=time.perf_counter() - t_start, **last_val)
+                logger.info("step %d: %s", step, ", ".join(f"{k} {v:.4g}" for k, v in last_val.items()))
+            if row:
+                log.write(row)
+            if step % cfg.ckpt_every == 0 or last:
+                save_checkpoint(out / CHECKPOINT_NAME, model, opt, sched, step, cfg)
+        if over_time and step < steps:
+            stopped_early = True
+            logger.warning("time budget of %.1f min reached at step %d of %d; stopping", cfg.max_minutes, step, steps)
+            break
+    bar.close()
+    wall = time.perf_counter() - t_start
+    summary: dict[str, Any] = {"steps": step, "steps_planned": steps, "stopped_early": stopped_early,
+                               "wall_time_s": round(wall, 1), "world_size": dist.world_size, **last_val}
+    if dist.is_main:
+        model.cpu().eval()
+        model.save(out / "model", extra={"training": summary, "config": config_to_dict(cfg)})
+        summary["model"] = str(out / "model.safetensors")
+        logger.info("trained %d steps in %.1f s; model written to %s", step, wall, out / "model.safetensors")
+        if cfg.final_eval:
+            from .evaluate import evaluate_planes, write_report
+
+            t0 = time.perf_counter()
+            result = evaluate_planes(model, cfg)
+            write_report(result, out / "report", title=f"Refinement evaluation ({out.name})")
+            summary["eval"] = result["summary"]
+            logger.info("evaluation (%.1f s): %s", time.perf_counter() - t0, json.dumps(result["summary"]))
+        (out / "summary.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    return summary
