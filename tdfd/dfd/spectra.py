@@ -99,7 +99,7 @@ class TileSpectra(nn.Module):
         phase = 2.0 * math.pi * f[:, None] * n[None, :] / tile  # (K+1, T)
         trig = torch.cat([torch.cos(phase), torch.sin(phase)], 0) * win  # (2(K+1), T)
         self.register_buffer("kernel_w", trig[:, None, None, :], persistent=False)  # along W
-        self.register_buffer("kernel_h", trig.repeat(2 * (k + 1), 1)[:, None, :, None], persistent=False)
+        self.register_buffer("kernel_h", trig[:, None, :, None], persistent=False)  # along H
         kk = torch.arange(k + 1)
         ky_pos, kx_pos = torch.meshgrid(kk, kk, indexing="ij")  # (+ky, kx) bins, ky-major
         ky_neg, kx_neg = torch.meshgrid(kk[1:], kk[1:], indexing="ij")
@@ -117,14 +117,21 @@ class TileSpectra(nn.Module):
         return 2.0 * math.pi * torch.sqrt(self.ky.double() ** 2 + self.kx.double() ** 2) / self.tile
 
     def noise_gain(self) -> torch.Tensor:
-        """Expected power per bin of unit-variance white noise, ``(N,)`` (window energy times
-        the pre-whitening gain)."""
-        g = torch.full((self.num_bins,), self.window_energy, dtype=torch.float64)
+        """Expected power per bin of unit-variance white noise, ``(N,)``.
+
+        Exact for the windowed (and pre-whitened) DFT: the bin is the inner product of the
+        noise with the kernel ``L * (w e^{-i k x})``, so its variance is that kernel's energy.
+        """
+        t = self.tile
+        win = periodic_hann(t, torch.float64)
+        n = torch.arange(t, dtype=torch.float64)
+        phase = 2.0 * math.pi * (self.ky.double()[:, None, None] * n[None, :, None]
+                                 + self.kx.double()[:, None, None] * n[None, None, :]) / t
+        w2 = (win[:, None] * win[None, :])[None]
+        kern = torch.stack([w2 * torch.cos(phase), w2 * torch.sin(phase)], 1).reshape(-1, 1, t, t)
         if self.prewhiten:
-            wy = 2.0 * math.pi * self.ky.double() / self.tile
-            wx = 2.0 * math.pi * self.kx.double() / self.tile
-            g = g * prewhiten_gain(wy, wx)
-        return g
+            kern = F.conv2d(kern, _LAPLACE.double()[None, None], padding=2)
+        return kern.pow(2).sum((1, 2, 3)).reshape(-1, 2).sum(1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if x.ndim != 4 or x.shape[1] != 1:
@@ -134,8 +141,10 @@ class TileSpectra(nn.Module):
         k1 = self.max_bin + 1
         kw, kh = self.kernel_w.to(x.dtype), self.kernel_h.to(x.dtype)
         rows = F.conv2d(x, kw, stride=(1, self.stride))  # (B, 2K1, H, w): [cos kx | sin kx]
-        a = F.conv2d(rows, kh, stride=(self.stride, 1), groups=2 * k1)  # (B, 2K1 * 2K1, h, w)
-        b, _, h, w = a.shape
+        b = rows.shape[0]
+        # the same column kernels for every row channel: fold channels into the batch
+        a = F.conv2d(rows.reshape(-1, 1, rows.shape[2], rows.shape[3]), kh, stride=(self.stride, 1))
+        h, w = a.shape[2], a.shape[3]
         a = a.reshape(b, 2, k1, 2, k1, h, w)  # (x-trig, kx, y-trig, ky, h, w)
         cc, cs = a[:, 0, :, 0], a[:, 1, :, 0]  # y-cos applied to x-cos / x-sin
         sc, ss = a[:, 0, :, 1], a[:, 1, :, 1]  # y-sin applied to x-cos / x-sin
