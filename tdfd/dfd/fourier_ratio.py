@@ -83,7 +83,7 @@ def validate_pair(image_f1: torch.Tensor, image_f2: torch.Tensor, tile: int) -> 
     for name, im in (("image_f1", image_f1), ("image_f2", image_f2)):
         if not bool(torch.isfinite(im).all()):
             raise NonFiniteError(f"{name} contains NaN or inf")
-        lo, hi = float(im.min()), float(im.max())
+        lo, hi = float(im.detach().min()), float(im.detach().max())
         if lo < INTENSITY_LIMITS[0] or hi > INTENSITY_LIMITS[1]:
             raise RangeError(f"{name} has values in [{lo:.3g}, {hi:.3g}]; expected linear intensity in [0, 1]")
 
