@@ -1,0 +1,188 @@
+"""Depth estimators for the autofocus loop: the shipped ONNX model, or the analytic stand-in.
+
+Each is an :class:`~tdfd.autofocus.controller.Estimator`: ``(image_f1, image_f2)``, two
+``(H, W)`` float32 frames of linear intensity in [0, 1] captured at the camera's two ECVFL
+powers, to ``(depth_m, confidence)`` on the tile grid, with ``camera``, ``tile`` and
+``stride`` attributes.
+
+* :class:`OnnxEstimator`: an ONNX file of CONTRACT.md section 2 (camera and grid from its
+  metadata) through :class:`tdfd.runtime.DepthRuntime` when that module is present, else
+  directly through onnxruntime. No torch.
+* :class:`AnalyticEstimator`: the torch Fourier-ratio estimator
+  (:class:`tdfd.dfd.FourierRatioDFD`), the stand-in before a trained model exists.
+
+:func:`load_estimator` picks one from a CLI-style spec.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import InputError, ModelError
+
+__all__ = ["OnnxEstimator", "AnalyticEstimator", "load_estimator", "default_model_path", "ONNX_INTRA_THREADS"]
+
+log = logging.getLogger(__name__)
+
+#: onnxruntime intra-op threads used by the fallback session (the bench machine has 2 cores).
+ONNX_INTRA_THREADS = 2
+
+
+def default_model_path() -> Path:
+    """The shipped model, ``models/reference.onnx`` beside the package."""
+    return Path(__file__).resolve().parents[2] / "models" / "reference.onnx"
+
+
+def _as_frame(image: np.ndarray, name: str) -> np.ndarray:
+    a = np.asarray(image, dtype=np.float32)
+    if a.ndim == 2:
+        return a[None, None]
+    if a.ndim == 4 and a.shape[:2] == (1, 1):
+        return a
+    raise InputError(f"{name} must be (H, W) or (1, 1, H, W), got {a.shape}")
+
+
+class OnnxEstimator:
+    """The exported DFD model (one ``.onnx`` file, CONTRACT.md section 2).
+
+    Args:
+        path: the ONNX file (default: :func:`default_model_path`).
+        use_runtime: prefer :class:`tdfd.runtime.DepthRuntime` if importable.
+
+    Attributes:
+        camera: from the ``tdfd.camera`` metadata.
+        tile, stride: from ``tdfd.grid``.
+        path: the file.
+        backend: ``"tdfd.runtime"`` or ``"onnxruntime"``.
+
+    Raises:
+        ModelError: the file is missing or lacks the contract's inputs, outputs or metadata.
+    """
+
+    def __init__(self, path: str | Path | None = None, use_runtime: bool = True) -> None:
+        self.path = Path(path) if path is not None else default_model_path()
+        if not self.path.is_file():
+            raise ModelError(f"ONNX model {self.path} not found")
+        self._runtime: Any = None
+        if use_runtime:
+            try:
+                from ..runtime import DepthRuntime  # type: ignore[import-not-found]
+            except ImportError:
+                DepthRuntime = None  # noqa: N806
+            if DepthRuntime is not None:
+                rt = DepthRuntime(self.path)
+                self._runtime = rt
+                self.camera: Camera = rt.camera
+                self.tile, self.stride = int(rt.tile), int(rt.stride)
+                self.backend = "tdfd.runtime"
+                return
+        self._open_session()
+        self.backend = "onnxruntime"
+
+    def _open_session(self) -> None:
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = ONNX_INTRA_THREADS
+        opts.inter_op_num_threads = 1
+        try:
+            self._session = ort.InferenceSession(str(self.path), sess_options=opts, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own exception types
+            raise ModelError(f"cannot load {self.path}: {exc}") from exc
+        meta = self._session.get_modelmeta().custom_metadata_map
+        try:
+            self.camera = Camera.from_json(meta["tdfd.camera"], name=self.path.stem)
+            grid = json.loads(meta["tdfd.grid"])
+            self.tile, self.stride = int(grid["tile"]), int(grid["stride"])
+        except (KeyError, ValueError, TypeError) as exc:
+            raise ModelError(f"{self.path} lacks valid tdfd.camera / tdfd.grid metadata: {exc}") from exc
+        names_in = [i.name for i in self._session.get_inputs()]
+        names_out = [o.name for o in self._session.get_outputs()]
+        if names_in[:2] != ["image_f1", "image_f2"] or not {"depth", "confidence"} <= set(names_out):
+            raise ModelError(f"{self.path}: inputs {names_in}, outputs {names_out} do not follow the contract")
+
+    def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Depth (m) and confidence, each ``(h, w)``, for one pair of ``(H, W)`` frames."""
+        a, b = _as_frame(image_f1, "image_f1"), _as_frame(image_f2, "image_f2")
+        if self._runtime is not None:
+            res = self._runtime(a, b)
+            depth, conf = res.depth, res.confidence
+        else:
+            if a.shape != b.shape:
+                raise InputError(f"image_f1 {a.shape} and image_f2 {b.shape} differ in shape")
+            if a.shape[-2] < self.tile or a.shape[-1] < self.tile:
+                raise InputError(f"frames {a.shape[-2:]} are smaller than one {self.tile}px tile")
+            depth, conf = self._session.run(["depth", "confidence"], {"image_f1": a, "image_f2": b})
+        return np.asarray(depth, np.float32).reshape(np.shape(depth)[-2:]), np.asarray(conf, np.float32).reshape(np.shape(conf)[-2:])
+
+    def __repr__(self) -> str:
+        return f"OnnxEstimator({str(self.path)!r}, tile={self.tile}, stride={self.stride}, backend={self.backend!r})"
+
+
+class AnalyticEstimator:
+    """The analytic Fourier-ratio DFD (torch), as an estimator for the autofocus loop.
+
+    Args:
+        camera: camera description (default ``reference``).
+        tile, stride: tile grid (px).
+        threads: torch intra-op threads during a call (restored afterwards); one thread is
+            faster than two for these small frames and immune to a busy machine.
+        **kwargs: passed to :class:`tdfd.dfd.FourierRatioDFD`.
+    """
+
+    def __init__(self, camera: Camera | None = None, tile: int = 64, stride: int = 32, threads: int | None = 1,
+                 **kwargs: Any) -> None:
+        import torch
+
+        from ..dfd.fourier_ratio import FourierRatioDFD
+
+        self.camera = camera if camera is not None else Camera.preset("reference")
+        self.tile, self.stride = int(tile), int(stride)
+        self._torch = torch
+        self._model = FourierRatioDFD(self.camera, tile=self.tile, stride=self.stride, **kwargs).eval()
+        self.threads = threads
+        self.backend = "torch (analytic FourierRatioDFD)"
+
+    def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        torch = self._torch
+        a = torch.from_numpy(_as_frame(image_f1, "image_f1").copy())
+        b = torch.from_numpy(_as_frame(image_f2, "image_f2").copy())
+        before = torch.get_num_threads()
+        if self.threads is not None and self.threads != before:
+            torch.set_num_threads(self.threads)
+        try:
+            with torch.no_grad():
+                depth, conf = self._model(a, b)
+        finally:
+            if self.threads is not None and self.threads != before:
+                torch.set_num_threads(before)
+        return depth[0, 0].numpy(), conf[0, 0].numpy()
+
+    def __repr__(self) -> str:
+        return f"AnalyticEstimator(tile={self.tile}, stride={self.stride})"
+
+
+def load_estimator(spec: str | None = None) -> OnnxEstimator | AnalyticEstimator:
+    """An estimator from a spec: a path to an ``.onnx`` file, ``"analytic"``, or ``None``/``"auto"``.
+
+    ``None``/``"auto"``: the shipped model if it exists, else the analytic stand-in (with a
+    warning).
+
+    Raises:
+        ModelError: a named ONNX file is missing or invalid.
+    """
+    if spec in (None, "", "auto"):
+        path = default_model_path()
+        if path.is_file():
+            return OnnxEstimator(path)
+        log.info("shipped model %s not found: using the analytic Fourier-ratio estimator as a stand-in", path)
+        return AnalyticEstimator()
+    if spec == "analytic":
+        return AnalyticEstimator()
+    return OnnxEstimator(spec)
