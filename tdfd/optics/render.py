@@ -30,6 +30,7 @@ Example:
 from __future__ import annotations
 
 import math
+from typing import Callable, Union
 
 import torch
 import torch.nn.functional as F
@@ -39,9 +40,16 @@ from ..errors import InputError, NonFiniteError, ShapeError
 from .psf import PSFShape, kernel_size_for, psf_kernel
 from .thin_lens import blur_radius_from_power
 
+#: Kernels returned by a custom PSF function: ``(N, k, k)``, or separable ``((N, k), (N, k))``.
+KernelOut = Union[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]
+#: ``kernel_fn(sigma (N,), sample (N,) long) -> KernelOut``: custom PSFs for the renderer.
+KernelFn = Callable[[torch.Tensor, torch.Tensor], KernelOut]
+
 __all__ = [
     "defocus_uniform",
     "defocus_layered",
+    "defocus_layered_multi",
+    "gaussian_psf_1d",
     "sigma_map",
     "render_at_power",
     "render_pair",
@@ -133,6 +141,213 @@ def sigma_map(camera: Camera, depth_m: torch.Tensor, ecvfl_power_dpt: float | to
     return mu * blur_radius_from_power(camera, depth_m, p)
 
 
+def _default_kernel_fn(shape: PSFShape) -> KernelFn:
+    def kernel_fn(sigma: torch.Tensor, sample: torch.Tensor) -> KernelOut:
+        size = kernel_size_for(float(sigma.detach().abs().max()) if sigma.numel() else 0.0, shape)
+        if shape == "gaussian" or (not isinstance(shape, str) and float(shape) == 2.0):
+            return gaussian_psf_1d(sigma, size)  # separable: cheaper OTFs, same kernel
+        return psf_kernel(sigma, shape, size)
+    return kernel_fn
+
+
+def gaussian_psf_1d(sigma: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The separable factors ``(k_y, k_x)`` of :func:`~tdfd.optics.psf.gaussian_psf`.
+
+    Returns two ``(*, size)`` tensors whose outer product is ``gaussian_psf(sigma, size)``.
+    """
+    s = sigma.abs().clamp_min(1e-6)[..., None]
+    x = torch.arange(size, dtype=sigma.dtype, device=sigma.device) - (size // 2)
+    k1 = 0.5 * (torch.erf((x + 0.5) / (math.sqrt(2.0) * s)) - torch.erf((x - 0.5) / (math.sqrt(2.0) * s)))
+    k1 = k1 / k1.sum(-1, keepdim=True)
+    return k1, k1
+
+
+def _kernel_otfs(kernels: KernelOut, padded_hw: tuple[int, int]) -> tuple[torch.Tensor, int]:
+    """OTFs ``(N, hp, wp//2+1)`` of centred kernels (2-D, or separable ``(k_y, k_x)``) and
+    the kernel half-size."""
+    hp, wp = padded_hw
+    if isinstance(kernels, tuple):
+        ky, kx = kernels
+        k = ky.shape[-1]
+        fy = torch.fft.fft(torch.roll(F.pad(ky, (0, hp - k)), -(k // 2), -1))
+        fx = torch.fft.rfft(torch.roll(F.pad(kx, (0, wp - k)), -(k // 2), -1))
+        return fy[..., :, None] * fx[..., None, :], k // 2
+    return _otf_of_kernels(kernels, padded_hw), kernels.shape[-1] // 2
+
+
+def _kernel_half(kernels: KernelOut) -> int:
+    k = kernels[0].shape[-1] if isinstance(kernels, tuple) else kernels.shape[-1]
+    if k % 2 == 0:
+        raise ShapeError(f"PSF kernels must have an odd size, got {k}")
+    return k // 2
+
+
+def _layer_grid(lo: float, hi: float, layer_spacing: float, max_layers: int) -> tuple[float, int, int]:
+    """Spacing and first/last index of the fixed layer grid ``k * spacing`` covering [lo, hi]."""
+    spacing = float(layer_spacing)
+    first, last = math.floor(lo / spacing), math.ceil(hi / spacing)
+    if last - first + 1 > max_layers:
+        spacing *= math.ceil((last - first) / (max_layers - 1))
+        first, last = math.floor(lo / spacing), math.ceil(hi / spacing)
+    return spacing, first, max(last, first + 1)
+
+
+def _entry_otfs(kernel_fn: KernelFn, psf_sigma: torch.Tensor, owner: torch.Tensor, hw: tuple[int, int]
+                ) -> tuple[torch.Tensor, int, tuple[int, int]]:
+    """OTFs ``(N, F, hp, wp//2+1)`` of the PSFs ``psf_sigma`` ``(N, F)``, the padding and FFT size."""
+    n, n_frames = psf_sigma.shape
+    kernels = kernel_fn(psf_sigma.reshape(-1), owner[:, None].expand(-1, n_frames).reshape(-1))
+    pad = _kernel_half(kernels)
+    hp, wp = _fft_size(hw[0] + 2 * pad), _fft_size(hw[1] + 2 * pad)
+    otf, _ = _kernel_otfs(kernels, (hp, wp))
+    return otf.reshape(n, n_frames, hp, wp // 2 + 1), pad, (hp, wp)
+
+
+def _blur_entries(image: torch.Tensor, alpha: torch.Tensor, owner: torch.Tensor, psf_sigma: torch.Tensor,
+                  kernel_fn: KernelFn) -> torch.Tensor:
+    """Blur ``alpha * image`` and ``alpha`` of N layer entries with F PSFs each.
+
+    ``alpha`` ``(N, 1, H, W)``, ``owner`` ``(N,)`` sample index, ``psf_sigma`` ``(N, F)``.
+    Returns ``(N, F, C+1, H, W)``: blurred colour channels, then the blurred coverage.
+    """
+    h, w = image.shape[-2:]
+    otf, pad, (hp, wp) = _entry_otfs(kernel_fn, psf_sigma, owner, (h, w))
+    stack = torch.cat([alpha * image[owner], alpha], dim=1)  # (N, C+1, H, W)
+    spec = torch.fft.rfft2(_pad(stack, pad), s=(hp, wp))
+    return torch.fft.irfft2(spec[:, None] * otf[:, :, None], s=(hp, wp))[..., pad : pad + h, pad : pad + w]
+
+
+def _gather_entries(image: torch.Tensor, owner: torch.Tensor, psf_sigma: torch.Tensor,
+                    kernel_fn: KernelFn) -> torch.Tensor:
+    """The whole image of each entry's sample blurred by the entry's F PSFs: ``(N, F, C, H, W)``;
+    one forward FFT per sample, shared by all its entries."""
+    h, w = image.shape[-2:]
+    otf, pad, (hp, wp) = _entry_otfs(kernel_fn, psf_sigma, owner, (h, w))
+    samples, local = torch.unique(owner, return_inverse=True)
+    spec = torch.fft.rfft2(_pad(image[samples], pad), s=(hp, wp))  # (S, C, hp, wq)
+    return torch.fft.irfft2(spec[local][:, None] * otf[:, :, None], s=(hp, wp))[..., pad : pad + h, pad : pad + w]
+
+
+def defocus_layered_multi(image: torch.Tensor, sigma: torch.Tensor, offsets: torch.Tensor | None = None,
+                          shape: PSFShape = "gaussian", layer_spacing: float = 0.25, max_layers: int = 48,
+                          kernel_fn: KernelFn | None = None, exact_planes: bool = False,
+                          occlusion: bool = True) -> torch.Tensor:
+    """Layered defocus of one scene at several focus settings in one pass.
+
+    Frame ``f`` has the blur map ``sigma + offsets[:, f]``: for the focal-length-varying
+    camera the two DFD frames differ by a constant (paper eq. 6), so they share one soft
+    layer decomposition (the fixed grid ``k * layer_spacing`` of ``sigma``, see
+    :func:`defocus_layered`) and its forward FFTs; only the PSFs differ (frame ``f``'s
+    layer ``k`` is blurred by ``k * layer_spacing + offsets[:, f]``). With zero offsets a
+    frame equals :func:`defocus_layered`; otherwise each frame differs from
+    :func:`defocus_layered` of its own map only by where the layer interpolation falls
+    (both are within the layering accuracy), and the interpolation error is the same in
+    every frame.
+
+    Layers no pixel of a sample falls into are skipped (per sample), so a piecewise-planar
+    scene costs only the layers its planes occupy.
+
+    Args:
+        image: sharp image ``(B, C, H, W)``.
+        sigma: signed blur map of the first frame in pixels ``(B, 1, H, W)``.
+        offsets: per-frame constant added to ``sigma``, ``(F,)`` or ``(B, F)``; default one
+            frame with offset 0.
+        shape: PSF shape (ignored when ``kernel_fn`` is given).
+        layer_spacing: spacing of the layer centres in pixels of ``sigma``.
+        max_layers: upper bound on the layer count (the spacing grows if needed).
+        kernel_fn: optional custom PSFs: called as ``kernel_fn(sigma, sample)`` with the
+            signed blur of every needed PSF ``(N,)`` and the index of its sample in the
+            batch ``(N,)`` (long); returns centred unit-sum kernels ``(N, k, k)`` of odd
+            size, or a separable pair ``((N, k), (N, k))`` whose outer products are the kernels.
+        exact_planes: render samples whose blur map is constant with one PSF of exactly
+            that blur (the :func:`defocus_uniform` result) instead of interpolating two
+            grid layers. Faster and exact for fronto-parallel planes, but the switch is not
+            differentiable-consistent (leave off for gradient checks).
+        occlusion: ``True`` (default) composites the layers front to back (scatter: each
+            scene point spreads light with its own PSF, near layers hide far ones). ``False``
+            blurs the *whole* image with each layer's PSF and mixes the results per pixel
+            with the layer weights (gather: each output pixel takes its own PSF): no
+            occlusion, about three times cheaper (one forward FFT per sample, one inverse per
+            layer and frame). The two agree to first order where the blur map is smooth; use
+            ``False`` only for depth maps without discontinuities (planes, smooth surfaces)
+            and for illumination patterns projected from the camera's viewpoint.
+
+    Returns:
+        ``(B, F, C, H, W)``: the defocused image of every frame.
+
+    Example:
+        >>> import torch
+        >>> x = torch.rand(2, 1, 32, 32)
+        >>> s = torch.linspace(-2, 2, 32).expand(2, 1, 32, 32)
+        >>> defocus_layered_multi(x, s, torch.tensor([0.0, -1.5])).shape
+        torch.Size([2, 2, 1, 32, 32])
+    """
+    _check_image(image)
+    _check_image(sigma, "sigma")
+    b, c, h, w = image.shape
+    if sigma.shape != (b, 1, h, w):
+        raise ShapeError(f"sigma must have shape {(b, 1, h, w)}, got {tuple(sigma.shape)}")
+    if not torch.isfinite(sigma).all():
+        raise NonFiniteError("sigma contains NaN or inf")
+    if layer_spacing <= 0 or max_layers < 2:
+        raise InputError("layer_spacing must be > 0 and max_layers >= 2")
+    if offsets is None:
+        offsets = torch.zeros(b, 1, dtype=sigma.dtype, device=sigma.device)
+    offsets = torch.as_tensor(offsets, dtype=sigma.dtype, device=sigma.device)
+    if offsets.ndim == 1:
+        offsets = offsets[None, :].expand(b, -1)
+    if offsets.ndim != 2 or offsets.shape[0] != b or offsets.shape[1] < 1:
+        raise ShapeError(f"offsets must have shape (F,) or ({b}, F), got {tuple(offsets.shape)}")
+    if not torch.isfinite(offsets).all():
+        raise NonFiniteError("offsets contain NaN or inf")
+    n_frames = offsets.shape[1]
+    kernel_fn = _default_kernel_fn(shape) if kernel_fn is None else kernel_fn
+    out = image.new_zeros(b, n_frames, c, h, w)
+
+    flat = sigma.detach().reshape(b, -1)
+    lo_b, hi_b = flat.amin(1), flat.amax(1)
+    planar = (lo_b == hi_b) if exact_planes else torch.zeros(b, dtype=torch.bool, device=sigma.device)
+    if bool(planar.any()):  # one PSF of exactly the plane's blur
+        ip = planar.nonzero(as_tuple=True)[0]
+        psf_sigma = sigma.reshape(b, -1)[ip, :1] + offsets[ip]
+        blurred = _blur_entries(image, torch.ones_like(sigma[ip]), ip, psf_sigma, kernel_fn)
+        out = out.index_put((ip,), blurred[:, :, :c] / blurred[:, :, c:].clamp_min(1e-6))
+    if bool(planar.all()):
+        return out
+    layered = (~planar).nonzero(as_tuple=True)[0]
+
+    # ---- soft layers on the fixed grid k * spacing (hat weights between neighbours)
+    spacing, first, last = _layer_grid(float(lo_b[layered].min()), float(hi_b[layered].max()), layer_spacing, max_layers)
+    n_layers = last - first + 1
+    centres = torch.arange(first, last + 1, dtype=sigma.dtype, device=sigma.device) * spacing  # (L,) near to far
+    t = (sigma - centres[None, :, None, None]) / spacing  # (B, L, H, W)
+    alpha = (1.0 - t.abs()).clamp_min(0.0)
+    sel = torch.zeros(b, dtype=torch.bool, device=sigma.device)
+    sel[layered] = True
+    if torch.is_grad_enabled() and sigma.requires_grad:
+        # keep layers that a pixel touches at weight 0 too (the hat's kink): the weight's
+        # derivative is not zero there
+        touched = (t.detach().abs() <= 1.0).reshape(b, n_layers, -1).any(-1)
+    else:
+        touched = alpha.detach().reshape(b, n_layers, -1).amax(-1) > 0
+    idx_b, idx_l = (touched & sel[:, None]).nonzero(as_tuple=True)  # layers some pixel falls into
+    psf_sigma = centres[idx_l][:, None] + offsets[idx_b]  # (N, F)
+    if not occlusion:  # gather: per-pixel mix of whole-image blurs
+        blurred = _gather_entries(image, idx_b, psf_sigma, kernel_fn)  # (N, F, C, H, W)
+        mixed = blurred * alpha[idx_b, idx_l][:, None, None]
+        full = mixed.new_zeros(b, n_frames, c, h, w).index_add(0, idx_b, mixed)
+        return torch.where(planar[:, None, None, None, None], out, full)
+    blurred = _blur_entries(image, alpha[idx_b, idx_l][:, None], idx_b, psf_sigma, kernel_fn)
+    full = blurred.new_zeros(b, n_layers, n_frames, c + 1, h, w).index_put((idx_b, idx_l), blurred)
+    colour, cover = full[:, :, :, :c], full[:, :, :, c:].clamp(0.0, 1.0)
+    # transmittance through layers nearer by more than one spacing: T_l = prod_{k <= l-2} (1 - A_k)
+    clear = torch.cumprod(1.0 - cover.clamp(max=1.0 - 1e-6), dim=1)
+    trans = torch.cat([torch.ones_like(clear[:, :2]), clear[:, : n_layers - 2]], dim=1)
+    num = (colour * trans).sum(1)
+    den = (cover * trans).sum(1).clamp_min(1e-6)
+    return torch.where(planar[:, None, None, None, None], out, num / den)
+
+
 def defocus_layered(image: torch.Tensor, sigma: torch.Tensor, shape: PSFShape = "gaussian",
                     layer_spacing: float = 0.25, max_layers: int = 48) -> torch.Tensor:
     """Render spatially varying defocus with occlusion by soft-layer compositing.
@@ -152,47 +367,7 @@ def defocus_layered(image: torch.Tensor, sigma: torch.Tensor, shape: PSFShape = 
     Returns:
         The defocused image ``(B, C, H, W)``.
     """
-    _check_image(image)
-    _check_image(sigma, "sigma")
-    b, c, h, w = image.shape
-    if sigma.shape != (b, 1, h, w):
-        raise ShapeError(f"sigma must have shape {(b, 1, h, w)}, got {tuple(sigma.shape)}")
-    if not torch.isfinite(sigma).all():
-        raise NonFiniteError("sigma contains NaN or inf")
-    if layer_spacing <= 0 or max_layers < 2:
-        raise InputError("layer_spacing must be > 0 and max_layers >= 2")
-    # layer centres on a fixed grid k * spacing (independent of the data, so small changes of
-    # sigma move weight between layers smoothly and derivatives are consistent)
-    flat = sigma.detach().reshape(b, -1)
-    lo_all, hi_all = float(flat.min()), float(flat.max())
-    spacing = float(layer_spacing)
-    first, last = math.floor(lo_all / spacing), math.ceil(hi_all / spacing)
-    if last - first + 1 > max_layers:
-        spacing *= math.ceil((last - first) / (max_layers - 1))
-        first, last = math.floor(lo_all / spacing), math.ceil(hi_all / spacing)
-    last = max(last, first + 1)
-    n_layers = last - first + 1
-    grid = torch.arange(first, last + 1, dtype=sigma.dtype, device=sigma.device) * spacing
-    centres = grid[None, :].expand(b, n_layers)  # (B, L), ascending = near to far
-    lo, hi = centres[:, 0], centres[:, -1]
-    # hat-function weights: each pixel split between its two neighbouring layer centres
-    t = (sigma - centres[:, :, None, None]) / spacing  # (B, L, H, W)
-    alpha = (1.0 - t.abs()).clamp_min(0.0)
-    size = kernel_size_for(float(torch.maximum(lo.abs(), hi.abs()).max()), shape)
-    pad = size // 2
-    hp, wp = _fft_size(h + 2 * pad), _fft_size(w + 2 * pad)
-    otf = _otf_of_kernels(psf_kernel(centres, shape, size), (hp, wp))  # (B, L, hp, wq)
-    stack = torch.cat([alpha[:, :, None] * image[:, None], alpha[:, :, None]], dim=2)  # (B, L, C+1, H, W)
-    spec = torch.fft.rfft2(_pad(stack, pad), s=(hp, wp)) * otf[:, :, None]
-    blurred = torch.fft.irfft2(spec, s=(hp, wp))[..., pad : pad + h, pad : pad + w]
-    colour, cover = blurred[:, :, :c], blurred[:, :, c:].clamp(0.0, 1.0)
-    # transmittance through layers nearer by more than one spacing: T_l = prod_{k <= l-2} (1 - A_k)
-    log_clear = torch.log1p(-cover.clamp(max=1.0 - 1e-6))
-    cum = torch.cumsum(log_clear, dim=1)
-    trans = torch.exp(F.pad(cum, (0, 0, 0, 0, 0, 0, 2, 0))[:, :n_layers])
-    num = (colour * trans).sum(1)
-    den = (cover * trans).sum(1).clamp_min(1e-6)
-    return num / den
+    return defocus_layered_multi(image, sigma, None, shape, layer_spacing, max_layers)[:, 0]
 
 
 def render_at_power(camera: Camera, sharp: torch.Tensor, depth_m: torch.Tensor,
@@ -228,7 +403,25 @@ def render_at_power(camera: Camera, sharp: torch.Tensor, depth_m: torch.Tensor,
 
 def render_pair(camera: Camera, sharp: torch.Tensor, depth_m: torch.Tensor, shape: PSFShape = "gaussian",
                 mu: float | torch.Tensor | None = None, layer_spacing: float = 0.25) -> tuple[torch.Tensor, torch.Tensor]:
-    """The DFD pair ``(image_f1, image_f2)`` at the camera's two ECVFL powers (noise-free)."""
+    """The DFD pair ``(image_f1, image_f2)`` at the camera's two ECVFL powers (noise-free).
+
+    Both frames share one layer decomposition (their blur maps differ by a constant,
+    paper eq. 6), rendered in one pass by :func:`defocus_layered_multi`.
+    """
     p1, p2 = camera.lens_powers_dpt
-    return (render_at_power(camera, sharp, depth_m, p1, shape, mu, layer_spacing),
-            render_at_power(camera, sharp, depth_m, p2, shape, mu, layer_spacing))
+    _check_image(sharp, "sharp")
+    _check_image(depth_m, "depth_m")
+    if depth_m.shape[0] != sharp.shape[0] or depth_m.shape[1] != 1 or depth_m.shape[-2:] != sharp.shape[-2:]:
+        raise ShapeError(f"depth_m must have shape (B, 1, H, W) matching sharp {tuple(sharp.shape)}, got {tuple(depth_m.shape)}")
+    if not torch.isfinite(depth_m).all() or bool((depth_m <= 0).any()):
+        raise InputError("depth_m must be finite and > 0 everywhere")
+    s1, s2 = sigma_map(camera, depth_m, p1, mu), sigma_map(camera, depth_m, p2, mu)
+    flat = s1.reshape(s1.shape[0], -1).detach()
+    diff = (s2 - s1).reshape(s1.shape[0], -1)
+    tol = 1e-4 * (1.0 + float(flat.abs().max()))
+    if bool((flat.amax(1) == flat.amin(1)).all()) or float((diff.detach().amax(1) - diff.detach().amin(1)).max()) > tol:
+        return (render_at_power(camera, sharp, depth_m, p1, shape, mu, layer_spacing),
+                render_at_power(camera, sharp, depth_m, p2, shape, mu, layer_spacing))
+    offsets = torch.stack([torch.zeros_like(diff[:, 0]), diff.mean(1)], dim=1)
+    out = defocus_layered_multi(sharp, s1, offsets, shape, layer_spacing)
+    return out[:, 0], out[:, 1]
