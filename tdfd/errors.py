@@ -23,6 +23,9 @@ __all__ = [
     "LensTimeoutError",
     "LensConnectionError",
     "LensRangeError",
+    "LensModeError",
+    "ForbiddenCommandError",
+    "UnsupportedFirmwareError",
 ]
 
 
@@ -100,3 +103,19 @@ class LensConnectionError(DriverError, ConnectionError):
 
 class LensRangeError(DriverError, ValueError):
     """A requested current or focal power outside the lens's reported limits."""
+
+
+class LensModeError(DriverError):
+    """A command that does not act in the lens's present operating mode.
+
+    For example setting a focal power while the driver is in current mode (``PwDA`` acts
+    only in focal-power mode), or setting a current while it is in focal-power mode.
+    """
+
+
+class ForbiddenCommandError(DriverError, ValueError):
+    """A command the driver refuses to send (``RESET``: firmware-update mode)."""
+
+
+class UnsupportedFirmwareError(DriverError):
+    """A firmware type whose encoding the protocol facts do not document (e.g. focal power on ``F``)."""

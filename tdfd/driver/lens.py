@@ -1,0 +1,402 @@
+"""The device API of the Optotune Lens Driver 4: :class:`OptotuneLens`.
+
+Typical use::
+
+    from tdfd.driver import OptotuneLens
+
+    with OptotuneLens.open("/dev/ttyACM0") as lens:     # handshake: the current drops to 0
+        lens.set_current_ma(50.0)                      # DC current mode
+        limits = lens.set_focal_power_mode()           # PwTA (temperature limits), then MwCA
+        lens.set_focal_power_dpt(1.5)                  # range-checked against ``limits``
+        print(lens.get_focal_power_dpt(), lens.get_temperature_c())
+
+Every failure is a :class:`~tdfd.errors.DriverError` subclass: out-of-range set-points
+:class:`~tdfd.errors.LensRangeError`, a command in the wrong mode
+:class:`~tdfd.errors.LensModeError`, an ``E``/``N`` answer
+:class:`~tdfd.errors.DeviceErrorReply`, silence :class:`~tdfd.errors.LensTimeoutError`
+(after ``retries`` further attempts), a vanished port
+:class:`~tdfd.errors.LensConnectionError`. ``RESET`` cannot be sent.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from typing import Any
+
+from ..errors import (
+    DeviceErrorReply,
+    LensModeError,
+    LensRangeError,
+    LensTimeoutError,
+    ProtocolError,
+)
+from . import protocol as p
+from .protocol import FirmwareVersion, FocalPowerLimits, Frame, Mode, Status, StatusFlags
+from .transport import DEFAULT_BAUDRATE, DEFAULT_TIMEOUT_S, SerialTransport, open_port
+
+__all__ = [
+    "OptotuneLens",
+    "DEFAULT_RETRIES",
+    "DEFAULT_TEMPERATURE_LIMITS_C",
+]
+
+log = logging.getLogger(__name__)
+
+#: further attempts after a timeout, a bad CRC, or an ``E 1`` (command CRC failed) answer.
+DEFAULT_RETRIES = 2
+#: (lower, upper) temperature limits in °C sent before switching to focal-power mode.
+DEFAULT_TEMPERATURE_LIMITS_C = (20.0, 40.0)
+
+
+class OptotuneLens:
+    """An Optotune Lens Driver 4 with its lens (e.g. EL-10-30), over a serial port.
+
+    The constructor does no I/O; :meth:`open` opens a named port and :meth:`connect`s.
+
+    Args:
+        port: an open pyserial-like object (``serial.Serial``, ``serial_for_url(...)``,
+            a test double).
+        timeout_s: time allowed for one reply, seconds.
+        retries: further attempts for a command with a reply after a timeout, a bad
+            reply CRC (or other unreadable reply), or an ``E 1`` answer (the command arrived corrupted). Commands
+            without a reply are never retried and never read.
+        owns_port: close ``port`` in :meth:`close`.
+
+    Attributes:
+        transport: the :class:`~tdfd.driver.transport.SerialTransport`.
+        retries: see above.
+        firmware_type: ``H`` reply letter, or ``None`` until read.
+        max_current_ma: maximum output current (``CrMA``), mA, or ``None`` until read.
+        current_limits_ma: (lower, upper) software current limits, mA, or ``None``.
+        mode: the operating mode as last read or set, or ``None`` if unknown.
+        focal_power_limits: the limits of the last ``MwCA`` reply, or ``None``.
+        temperature_limits_c: (lower, upper) temperature limits last sent, °C, or ``None``.
+    """
+
+    def __init__(
+        self,
+        port: Any,
+        *,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+        retries: int = DEFAULT_RETRIES,
+        owns_port: bool = False,
+    ) -> None:
+        if int(retries) < 0:
+            raise ValueError(f"retries must be >= 0, got {retries}")
+        self.transport = SerialTransport(port, timeout_s=timeout_s, owns_port=owns_port)
+        self.retries = int(retries)
+        self.firmware_type: str | None = None
+        self.max_current_ma: float | None = None
+        self.current_limits_ma: tuple[float, float] | None = None
+        self._current_limits_raw: tuple[int, int] | None = None
+        self.mode: Mode | None = None
+        self.focal_power_limits: FocalPowerLimits | None = None
+        self.temperature_limits_c: tuple[float, float] | None = None
+        self._lock = threading.RLock()
+
+    # ------------------------------------------------------------------ life cycle
+
+    @classmethod
+    def open(
+        cls,
+        port_or_url: str,
+        *,
+        baudrate: int = DEFAULT_BAUDRATE,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+        retries: int = DEFAULT_RETRIES,
+        handshake: bool = True,
+    ) -> OptotuneLens:
+        """Open the named port or pyserial URL and :meth:`connect`.
+
+        Use as a context manager (``with OptotuneLens.open(port) as lens:``) so the port
+        is closed. Note that the handshake zeroes the output current.
+
+        Args:
+            port_or_url: e.g. ``/dev/ttyACM0``, ``COM3``, an emulator's pty path.
+            baudrate: 115200 (USB) or 38400 (TTL UART variant).
+            timeout_s: time allowed for one reply, seconds.
+            retries: see the class.
+            handshake: send ``Start`` first.
+
+        Raises:
+            LensConnectionError: the port cannot be opened or vanished.
+            DriverError: the device did not identify itself.
+        """
+        port = open_port(port_or_url, baudrate=baudrate, timeout_s=timeout_s)
+        lens = cls(port, timeout_s=timeout_s, retries=retries, owns_port=True)
+        try:
+            lens.connect(handshake=handshake)
+        except BaseException:
+            lens.close()
+            raise
+        return lens
+
+    def connect(self, *, handshake: bool = True) -> OptotuneLens:
+        """Handshake (optional), then read firmware type, maximum current, current limits and mode.
+
+        Args:
+            handshake: send ``Start`` first (zeroes the output current).
+
+        Returns:
+            ``self``.
+        """
+        with self._lock:
+            if handshake:
+                self.handshake()
+            self.get_firmware_type()
+            self.get_max_current_ma()
+            self.get_current_limits_ma()
+            try:
+                self.get_mode()
+            except DeviceErrorReply as exc:  # MMA missing on some firmware: mode stays unknown
+                log.warning("cannot read the operating mode: %s", exc)
+                self.mode = None
+            log.info(
+                "lens driver: firmware type %s, max current %.2f mA, current limits %s mA, mode %s",
+                self.firmware_type,
+                self.max_current_ma,
+                self.current_limits_ma,
+                self.mode.name if self.mode else "unknown",
+            )
+        return self
+
+    def close(self) -> None:
+        """Close the port if this lens opened it. Idempotent; the lens keeps its state."""
+        self.transport.close()
+
+    def __enter__(self) -> OptotuneLens:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        port = getattr(self.transport.port, "port", None) or type(self.transport.port).__name__
+        return f"OptotuneLens({port!r}, firmware_type={self.firmware_type!r}, mode={self.mode.name if self.mode else None})"
+
+    # ------------------------------------------------------------------ exchanges
+
+    def _query(self, frame: bytes) -> Frame:
+        """Send a command that has a reply; retry on timeouts, bad CRCs and ``E 1``."""
+        prefix = p.reply_prefix_for(frame)
+        assert prefix is not None, "use _send for commands without a reply"
+        name = p.command_spec_for(frame).name.decode()  # type: ignore[union-attr]
+        last: Exception | None = None
+        with self._lock:
+            for attempt in range(self.retries + 1):
+                try:
+                    return self.transport.exchange(frame, prefix)  # type: ignore[return-value]
+                except (LensTimeoutError, ProtocolError) as exc:  # ProtocolError includes ChecksumError
+                    last = exc
+                except DeviceErrorReply as exc:
+                    if exc.code != 1:  # not a transmission error: retrying cannot help
+                        raise
+                    last = exc
+                log.warning("%s: attempt %d of %d failed: %s", name, attempt + 1, self.retries + 1, last)
+        assert last is not None
+        raise last
+
+    def _send(self, frame: bytes) -> None:
+        """Send a command that has no reply; read nothing."""
+        with self._lock:
+            self.transport.exchange(frame, None)
+
+    # ------------------------------------------------------------------ identification
+
+    def handshake(self) -> None:
+        """Send ``Start`` and expect ``Ready``. The driver zeroes its output current."""
+        self._query(p.encode_start())
+
+    def get_firmware_type(self) -> str:
+        """Firmware type letter (``A``, ``B``, ``C``, ``E``, ``F``); also cached in :attr:`firmware_type`."""
+        data = self._query(p.encode_get_firmware_type()).data
+        letter = chr(data[0])
+        if not letter.isalpha():
+            raise ProtocolError(f"firmware type is not a letter: {data!r}")
+        self.firmware_type = letter
+        return letter
+
+    def get_firmware_version(self) -> FirmwareVersion:
+        """Firmware version (major, minor, build, revision)."""
+        return p.parse_firmware_version(self._query(p.encode_get_firmware_version()))
+
+    def get_serial_number(self) -> str:
+        """The lens serial number (8 characters; empty without lens EEPROM)."""
+        return _text(self._query(p.encode_get_serial_number()).data)
+
+    def get_device_id(self) -> str:
+        """The driver's device id (8 characters)."""
+        return _text(self._query(p.encode_get_device_id()).data)
+
+    # ------------------------------------------------------------------ current
+
+    def get_max_current_ma(self) -> float:
+        """Maximum output current, mA (default 292.84); also cached in :attr:`max_current_ma`."""
+        raw = p.unpack_i16(self._query(p.encode_get_max_current()).data)
+        if raw <= 0:
+            raise ProtocolError(f"implausible maximum current register {raw}")
+        self.max_current_ma = p.max_current_raw_to_ma(raw)
+        return self.max_current_ma
+
+    def get_current_limits_ma(self) -> tuple[float, float]:
+        """(lower, upper) software current limits, mA; cached in :attr:`current_limits_ma`.
+
+        The registers are read as raw current values (the ``Aw`` scale).
+        """
+        max_ma = self._max_current()
+        lower = p.unpack_i16(self._query(p.encode_get_lower_current_limit()).data)
+        upper = p.unpack_i16(self._query(p.encode_get_upper_current_limit()).data)
+        if lower > upper:
+            log.warning("lower current limit %d above upper %d: swapping", lower, upper)
+            lower, upper = upper, lower
+        self._current_limits_raw = (lower, upper)
+        self.current_limits_ma = (p.current_raw_to_ma(lower, max_ma), p.current_raw_to_ma(upper, max_ma))
+        return self.current_limits_ma
+
+    def _max_current(self) -> float:
+        return self.max_current_ma if self.max_current_ma is not None else self.get_max_current_ma()
+
+    def set_current_ma(self, current_ma: float) -> None:
+        """Set the output current (``Aw``; the driver sends no reply and none is read).
+
+        Args:
+            current_ma: output current, mA; negative currents are allowed.
+
+        Raises:
+            LensRangeError: not finite, beyond the maximum current or the software limits.
+            LensModeError: the driver is known to be in another mode than current mode.
+        """
+        with self._lock:
+            if self.mode is not None and self.mode != Mode.CURRENT:
+                raise LensModeError(f"set_current_ma needs current mode, the driver is in {self.mode.name} mode: call set_current_mode()")
+            max_ma = self._max_current()
+            if self._current_limits_raw is None:
+                self.get_current_limits_ma()
+            raw = p.current_ma_to_raw(current_ma, max_ma)
+            lower, upper = self._current_limits_raw  # type: ignore[misc]
+            if not lower <= raw <= upper:
+                lo_ma, hi_ma = self.current_limits_ma  # type: ignore[misc]
+                raise LensRangeError(f"current {current_ma} mA outside the software limits [{lo_ma:.2f}, {hi_ma:.2f}] mA")
+            self._send(p.encode_set_current(raw))
+
+    def get_current_ma(self) -> float:
+        """The output current, mA."""
+        raw = p.unpack_i16(self._query(p.encode_get_current()).data)
+        return p.current_raw_to_ma(raw, self._max_current())
+
+    # ------------------------------------------------------------------ modes
+
+    def get_mode(self) -> Mode:
+        """The operating mode (``MMA``); also cached in :attr:`mode`."""
+        value = self._query(p.encode_get_mode()).data[0]
+        try:
+            self.mode = Mode(value)
+        except ValueError:
+            raise ProtocolError(f"unknown operating mode {value}") from None
+        return self.mode
+
+    def set_current_mode(self) -> None:
+        """Switch to DC current mode (``MwDA``)."""
+        with self._lock:
+            self._query(p.encode_current_mode())
+            self.mode = Mode.CURRENT
+
+    def set_temperature_limits_c(self, lower_c: float, upper_c: float) -> FocalPowerLimits:
+        """Send the temperature limits for focal-power mode (``PwTA``).
+
+        Args:
+            lower_c: lower temperature limit, °C.
+            upper_c: upper temperature limit, °C.
+
+        Returns:
+            The focal-power range the driver guarantees within these limits (``PT`` reply).
+
+        Raises:
+            LensRangeError: non-finite limits or ``lower_c >= upper_c``.
+        """
+        if not (math.isfinite(lower_c) and math.isfinite(upper_c)) or lower_c >= upper_c:
+            raise LensRangeError(f"temperature limits must be finite with lower < upper, got [{lower_c}, {upper_c}] °C")
+        with self._lock:
+            frame = p.encode_set_temperature_limits(p.temperature_c_to_raw(upper_c), p.temperature_c_to_raw(lower_c))
+            reply = self._query(frame)
+            limits = p.parse_focal_power_limits(reply, self._firmware())
+            self.temperature_limits_c = (float(lower_c), float(upper_c))
+            if limits.status:
+                log.warning("temperature limits reply status: %s", limits.status)
+            return limits
+
+    def set_focal_power_mode(
+        self, temperature_limits_c: tuple[float, float] = DEFAULT_TEMPERATURE_LIMITS_C
+    ) -> FocalPowerLimits:
+        """Switch to focal-power mode: temperature limits (``PwTA``) first, then ``MwCA``.
+
+        Args:
+            temperature_limits_c: (lower, upper) temperature limits, °C.
+
+        Returns:
+            The focal-power limits of the ``MCA`` reply; later set-points are checked
+            against them (also in :attr:`focal_power_limits`).
+        """
+        with self._lock:
+            self.set_temperature_limits_c(*temperature_limits_c)
+            reply = self._query(p.encode_focal_power_mode())
+            limits = p.parse_focal_power_limits(reply, self._firmware())
+            if limits.min_dpt > limits.max_dpt:
+                raise ProtocolError(f"focal-power limits reversed: {limits}")
+            self.focal_power_limits = limits
+            self.mode = Mode.FOCAL_POWER
+            if limits.status & StatusFlags.NO_TEMPERATURE_LIMITS:
+                log.warning("the driver reports no temperature limits after PwTA")
+            log.info("focal-power mode: %.3f to %.3f dpt", limits.min_dpt, limits.max_dpt)
+            return limits
+
+    # ------------------------------------------------------------------ focal power
+
+    def _firmware(self) -> str:
+        return self.firmware_type if self.firmware_type is not None else self.get_firmware_type()
+
+    def set_focal_power_dpt(self, power_dpt: float) -> None:
+        """Set the focal power (``PwDA``; no reply, none is read).
+
+        Args:
+            power_dpt: focal power, dioptres, within :attr:`focal_power_limits`.
+
+        Raises:
+            LensModeError: not in focal-power mode (call :meth:`set_focal_power_mode`).
+            LensRangeError: not finite or outside the limits of the ``MCA`` reply.
+            UnsupportedFirmwareError: a firmware type without documented encoding.
+        """
+        with self._lock:
+            limits = self.focal_power_limits
+            if self.mode != Mode.FOCAL_POWER or limits is None:
+                raise LensModeError("set_focal_power_dpt needs focal-power mode: call set_focal_power_mode() first")
+            firmware = self._firmware()
+            raw = p.focal_power_dpt_to_raw(power_dpt, firmware)
+            lo = p.focal_power_dpt_to_raw(limits.min_dpt, firmware)
+            hi = p.focal_power_dpt_to_raw(limits.max_dpt, firmware)
+            if not lo <= raw <= hi:
+                raise LensRangeError(
+                    f"focal power {power_dpt} dpt outside the driver's limits [{limits.min_dpt:.3f}, {limits.max_dpt:.3f}] dpt"
+                )
+            self._send(p.encode_set_focal_power(raw))
+
+    def get_focal_power_dpt(self) -> float:
+        """The focal power (``PrDA``), dioptres."""
+        raw = p.unpack_i16(self._query(p.encode_get_focal_power()).data)
+        return p.focal_power_raw_to_dpt(raw, self._firmware())
+
+    # ------------------------------------------------------------------ monitoring
+
+    def get_temperature_c(self) -> float | None:
+        """Lens temperature, °C (``None``: no sensor)."""
+        return p.temperature_raw_to_c(p.unpack_i16(self._query(p.encode_get_temperature()).data))
+
+    def get_status(self) -> Status:
+        """The four status bytes (``Sr``); ``.flags`` decodes status byte #1."""
+        return p.parse_status(self._query(p.encode_get_status()))
+
+
+def _text(data: bytes) -> str:
+    return bytes(data).rstrip(b"\x00").decode("ascii", errors="replace")
