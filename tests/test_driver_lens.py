@@ -157,9 +157,7 @@ def test_focal_power_mode_sends_temperature_limits_first_then_golden_set_point()
     lens, port = scripted(
         connect_script()
         + FP_MODE_SCRIPT
-        + [
-            (bytes.fromhex("50 77 44 41 06 40 00 00 30 2C"), b""),  # 3 dpt? no: outside -5…2.5, see below
-        ]
+        + [(bytes.fromhex("50 77 44 41 06 40 00 00 30 2C"), b"")]  # 3 dpt, type A: the golden frame
     )
     lens.connect()
     limits = lens.set_focal_power_mode((20.0, 40.0))

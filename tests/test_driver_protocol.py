@@ -263,7 +263,7 @@ def test_newline_bytes_in_data_and_crc_do_not_split_frames() -> None:
     for byte in b"".join(frames):  # byte by byte
         out += decoder.feed(bytes([byte]))
     assert out == [p.decode_frame(f) for f in frames]
-    assert [unpack for unpack in (p.unpack_i16(out[1].data),)] == [value]
+    assert p.unpack_i16(out[1].data) == value
     assert decoder.discarded == 0
 
 

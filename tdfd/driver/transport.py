@@ -15,7 +15,6 @@ a frame, each read bounded by the port's timeout. I/O failures of a vanished por
 from __future__ import annotations
 
 import logging
-import time
 from typing import Any
 
 from ..errors import ChecksumError, ForbiddenCommandError, LensConnectionError, LensTimeoutError, ProtocolError
