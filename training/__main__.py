@@ -24,6 +24,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. optim.lr=1e-3 (repeatable)")
     p.add_argument("--resume", action="store_true", help="continue from OUT_DIR/checkpoint_last.pt if present")
+    p.add_argument("--stop-at-step", type=int, default=None, metavar="N",
+                   help="stop with a checkpoint after N steps (continue later with --resume)")
     p.add_argument("--print-config", action="store_true", help="print the resolved config and exit")
     p.add_argument("--evaluate", metavar="MODEL", help="only evaluate a saved model (path stem) and write OUT_DIR/report.*")
     args = p.parse_args(argv)
@@ -49,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     from .loop import train
 
-    summary = train(cfg, resume=args.resume)
+    summary = train(cfg, resume=args.resume, stop_at_step=args.stop_at_step)
     print(json.dumps(summary, indent=2, sort_keys=True, default=str))
     return 0
 

@@ -35,66 +35,47 @@ logger = logging.getLogger(__name__)
 CONF_EDGES = (0.0, 0.1, 0.3, 0.5, 0.7, 0.9, 1.0)
 
 
-def _texture(g: torch.Generator, n: int, h: int, w: int, slope_range=(0.8, 1.6)) -> torch.Tensor:
-    """Stand-in texture until ``tdfd.textures`` is available: ``1/f^a`` noise, unit std."""
-    try:
-        from tdfd import textures  # type: ignore[attr-defined]
-
-        fn = getattr(textures, "random_texture", None)
-        if fn is not None:
-            return fn(n, h, w, generator=g)
-    except ImportError:
-        pass
-    fy = torch.fft.fftfreq(h)[:, None]
-    fx = torch.fft.rfftfreq(w)[None, :]
-    f = torch.sqrt(fy * fy + fx * fx).clamp_min(1.0 / max(h, w))
-    slope = slope_range[0] + (slope_range[1] - slope_range[0]) * torch.rand(n, 1, 1, generator=g)
-    spec = torch.complex(torch.randn(n, h, w // 2 + 1, generator=g), torch.randn(n, h, w // 2 + 1, generator=g))
-    x = torch.fft.irfft2(spec * f[None] ** (-slope), s=(h, w))
-    x = x - x.mean((-1, -2), keepdim=True)
-    return (x / x.std((-1, -2), keepdim=True))[:, None]
-
-
-def _noise(g: torch.Generator, x: torch.Tensor, full_well: torch.Tensor, read_e: torch.Tensor, bits: int = 10) -> torch.Tensor:
-    """Poisson-Gaussian sensor noise (normal approximation) and quantisation to ``bits``."""
-    var = x.clamp_min(0.0) / full_well + (read_e / full_well) ** 2
-    y = x + torch.sqrt(var) * torch.randn(x.shape, generator=g, dtype=x.dtype)
-    levels = 2**bits - 1
-    return (torch.round(y.clamp(0.0, 1.0) * levels) / levels).to(x.dtype)
+#: Texture families of the "textured plane" scenes (every family but the near-uniform ones).
+TEXTURED_FAMILIES = ("fractal", "bandlimited", "voronoi", "dead_leaves", "stripes", "checkers", "dots",
+                     "line_art", "glyphs")
 
 
 def plane_pairs(model: DFDModel, depth_m: float, count: int, seed: int, height: int, width: int,
                 textureless: bool = False) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
-    """``count`` noisy image pairs of a plane at ``depth_m`` (held-out scenes).
+    """``count`` noisy image pairs of a fronto-parallel plane at ``depth_m`` (held-out scenes).
 
-    Each sample draws a texture, a mean level in [0.2, 0.6], a contrast in [0.1, 0.3] (0.002
-    if ``textureless``), a PSF shape (Gaussian, pillbox or power-exponential beta in [3, 8]),
-    a full well in [3000, 20000] electrons and a read noise in [2, 6] electrons (10-bit).
+    Each sample draws a texture (:func:`tdfd.textures.random_texture` over
+    :data:`TEXTURED_FAMILIES`, albedo in [0.3, 0.9], contrast log-uniform in [0.1, 1]; the
+    ``flat`` family if ``textureless``), a PSF shape (Gaussian, pillbox or a
+    power-exponential with beta in [3, 8], one third each), an exposure in [0.3, 0.9] and a
+    sensor (:class:`tdfd.sensor.SensorModel`: full well 4000-20000 e-, read noise 2-6 e-,
+    12 bits, black level 64 codes).
 
     Returns:
         ``(image_f1, image_f2, psf_names)``; images ``(count, 1, height, width)``.
     """
     from tdfd.optics import render_pair
+    from tdfd.sensor import SensorModel
+    from tdfd.textures import random_texture
 
     cam = model.camera
     g = torch.Generator().manual_seed(int(seed))
-    tex = _texture(g, count, height, width)
-    level = 0.2 + 0.4 * torch.rand(count, 1, 1, 1, generator=g)
-    contrast = 0.1 + 0.2 * torch.rand(count, 1, 1, 1, generator=g)
-    if textureless:
-        contrast = torch.full_like(contrast, 0.002)
-    sharp = (level * (1.0 + contrast * tex)).clamp(0.0, 1.0)
-    full_well = 3000.0 + 17000.0 * torch.rand(count, 1, 1, 1, generator=g)
-    read_e = 2.0 + 4.0 * torch.rand(count, 1, 1, 1, generator=g)
-    kinds = torch.randint(3, (count,), generator=g)
-    betas = 3.0 + 5.0 * torch.rand(count, generator=g)
     i1s, i2s, names = [], [], []
-    for i in range(count):
-        shape: Any = ["gaussian", "pillbox", float(betas[i])][int(kinds[i])]
+    for _ in range(count):
+        if textureless:
+            tex, _p = random_texture(g, (height, width), family="flat", albedo=(0.3, 0.9))
+        else:
+            tex, _p = random_texture(g, (height, width), families=TEXTURED_FAMILIES, albedo=(0.3, 0.9), contrast=(0.1, 1.0))
+        u = torch.rand(5, generator=g).tolist()
+        kind = int(torch.randint(3, (), generator=g))
+        shape: Any = ["gaussian", "pillbox", 3.0 + 5.0 * u[0]][kind]
         depth = torch.full((1, 1, height, width), float(depth_m))
-        i1, i2 = render_pair(cam, sharp[i : i + 1], depth, shape=shape)
-        i1s.append(_noise(g, i1, full_well[i], read_e[i]))
-        i2s.append(_noise(g, i2, full_well[i], read_e[i]))
+        i1, i2 = render_pair(cam, tex.float(), depth, shape=shape)
+        sensor = SensorModel(full_well_e=4000.0 + 16000.0 * u[1], read_noise_e=2.0 + 4.0 * u[2], bits=12,
+                             black_level_dn=64.0, exposure=0.3 + 0.6 * u[3])
+        frames = sensor(torch.cat([i1, i2], 1), generator=g)
+        i1s.append(frames[:, 0:1])
+        i2s.append(frames[:, 1:2])
         names.append(shape if isinstance(shape, str) else f"beta={shape:.1f}")
     return torch.cat(i1s), torch.cat(i2s), names
 

@@ -185,7 +185,7 @@ def fit_normaliser(model: DFDModel, feats: torch.Tensor) -> None:
 
 
 # ----------------------------------------------------------------------------- train
-def train(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
+def train(cfg: TrainConfig, resume: bool = False, stop_at_step: int | None = None) -> dict[str, Any]:
     """Train the refinement and write the run directory.
 
     Writes ``config.json``, ``train_log.csv``, ``train.log``, ``checkpoint_last.pt``,
@@ -196,6 +196,8 @@ def train(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
         cfg: the configuration.
         resume: continue from ``out_dir/checkpoint_last.pt`` if it exists (exactly: the
             result equals an uninterrupted run).
+        stop_at_step: stop (with a checkpoint, without the final model) once this many
+            steps are done; simulates an interruption, or splits a run into chunks.
 
     Returns:
         A summary dict (steps done, final validation metrics, wall time, paths).
@@ -211,7 +213,7 @@ def train(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
         torch.distributed.barrier()
     handler = _setup_logging(out, dist.is_main)
     try:
-        return _train(cfg, resume, dist, out, t_start)
+        return _train(cfg, resume, dist, out, t_start, stop_at_step)
     finally:
         if handler is not None:
             logger.removeHandler(handler)
@@ -221,7 +223,8 @@ def train(cfg: TrainConfig, resume: bool = False) -> dict[str, Any]:
             torch.distributed.destroy_process_group()
 
 
-def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: float) -> dict[str, Any]:
+def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: float,
+           stop_at_step: int | None) -> dict[str, Any]:
     torch.manual_seed(cfg.seed)
     model = build_model(cfg.model)
     opt = torch.optim.AdamW(model.refine.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
@@ -301,7 +304,8 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
             flag = torch.tensor([float(over_time)], device=dist.device)
             torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
             over_time = bool(flag.item() > 0)
-        last = step == steps or over_time
+        interrupted = stop_at_step is not None and step >= stop_at_step and step < steps
+        last = step == steps or over_time or interrupted
         if dist.is_main:
             row: dict[str, Any] = {}
             if step % cfg.log_every == 0 or last:
@@ -320,6 +324,8 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
                 log.write(row)
             if step % cfg.ckpt_every == 0 or last:
                 save_checkpoint(out / CHECKPOINT_NAME, model, opt, sched, step, cfg)
+        if interrupted:
+            break
         if over_time and step < steps:
             stopped_early = True
             logger.warning("time budget of %.1f min reached at step %d of %d; stopping", cfg.max_minutes, step, steps)
@@ -328,6 +334,9 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
     wall = time.perf_counter() - t_start
     summary: dict[str, Any] = {"steps": step, "steps_planned": steps, "stopped_early": stopped_early,
                                "wall_time_s": round(wall, 1), "world_size": dist.world_size, **last_val}
+    if step < steps and not stopped_early:  # interrupted on purpose: checkpoint only
+        logger.info("stopped at step %d of %d (checkpoint %s)", step, steps, out / CHECKPOINT_NAME)
+        return summary
     if dist.is_main:
         model.cpu().eval()
         model.save(out / "model", extra={"training": summary, "config": config_to_dict(cfg)})

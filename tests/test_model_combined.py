@@ -1,0 +1,141 @@
+"""DFDModel: shapes, zero-init equivalence with the analytic layer, gradients, persistence."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from tdfd import Camera
+from tdfd.dfd import FourierRatioDFD
+from tdfd.errors import InputError, ModelError, RangeError, ShapeError
+from tdfd.model import DFDModel, RefineNet, num_features
+from tdfd.optics import render_pair
+
+REF = Camera.preset("reference")
+
+
+def _pair(b=2, h=128, w=160, depth=0.45, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x = 0.4 + 0.1 * torch.randn(b, 1, h, w, generator=g)
+    return render_pair(REF, x.clamp(0, 1), torch.full((b, 1, h, w), depth))
+
+
+@pytest.fixture(scope="module")
+def small_model():
+    torch.manual_seed(0)
+    return DFDModel(REF, tile=32, stride=16, hidden=8, blocks=1)
+
+
+@pytest.mark.parametrize("b,h,w", [(1, 32, 32), (2, 48, 80), (3, 64, 33), (1, 100, 47)])
+def test_shapes_any_size(small_model, b, h, w):
+    i1, i2 = _pair(b, h, w)
+    depth, conf, depth_a = small_model(i1, i2)
+    hh, ww = (h - 32) // 16 + 1, (w - 32) // 16 + 1
+    for t in (depth, conf, depth_a):
+        assert t.shape == (b, 1, hh, ww) and t.dtype == torch.float32
+    assert bool((conf >= 0).all() and (conf <= 1).all())
+    assert bool(torch.isfinite(depth).all() and (depth > 0).all())
+
+
+def test_refinenet_fully_convolutional():
+    net = RefineNet(5, hidden=4, blocks=2)
+    for h, w in [(1, 1), (1, 7), (6, 2)]:
+        assert net(torch.randn(2, 5, h, w)).shape == (2, 2, h, w)
+    with pytest.raises(InputError):
+        RefineNet(5, kernel_size=2)
+
+
+def test_zero_init_reproduces_analytic():
+    model = DFDModel(REF)  # default grid 64 / 32
+    i1, i2 = _pair(2, 128, 160, depth=0.6)
+    depth, conf, depth_a = model(i1, i2)
+    ana, _ = FourierRatioDFD(REF, tile=64, stride=32)(i1, i2)
+    assert torch.equal(depth, depth_a)
+    torch.testing.assert_close(depth_a, ana, rtol=0, atol=0)
+    assert model.analyse(i1, i2).features.shape[1] == num_features(FourierRatioDFD(REF).num_rings)
+
+
+def test_gradients_flow_through_every_parameter():
+    torch.manual_seed(1)
+    model = DFDModel(REF, tile=32, stride=16, hidden=8, blocks=2)
+    torch.nn.init.normal_(model.refine.head.weight, std=0.1)
+    i1, i2 = _pair(2, 64, 64)
+    r = model.analyse(i1, i2)
+    (r.depth.mean() + r.confidence.mean() + r.log_scale.mean()).backward()
+    for name, p in model.refine.named_parameters():
+        assert p.grad is not None and torch.isfinite(p.grad).all(), name
+        assert float(p.grad.abs().max()) > 0, name
+
+
+def test_confidence_is_monotone_in_predicted_scale(small_model):
+    i1, i2 = _pair(1, 64, 64)
+    feats, r = small_model.features(i1, i2)
+    q, log_b, conf, _ = small_model.head(feats, r.inverse_depth, r.rel_error)
+    scale = torch.linspace(-6, 1, 50).reshape(1, 1, 50, 1)
+    c = 1 / (1 + (torch.exp(scale) / small_model.confidence_scale) ** 2)
+    assert bool((c[:, :, 1:] <= c[:, :, :-1]).all())
+    assert torch.allclose(conf, 1 / (1 + (torch.exp(log_b) / small_model.confidence_scale) ** 2))
+
+
+def test_validation_flag(small_model):
+    i1, i2 = _pair(1, 64, 64)
+    with pytest.raises(RangeError):
+        small_model(i1 * 10, i2)
+    with pytest.raises(ShapeError):
+        small_model(i1[..., :20, :], i2[..., :20, :])
+    small_model.set_validate(False)
+    try:
+        small_model(i1 * 10, i2)  # no check, still finite
+    finally:
+        small_model.set_validate(True)
+
+
+def test_save_load_round_trip(tmp_path):
+    torch.manual_seed(2)
+    model = DFDModel(REF, tile=32, stride=16, hidden=8, blocks=1, confidence_scale=0.02)
+    for p in model.refine.parameters():
+        torch.nn.init.normal_(p, std=0.05)
+    model.refine.set_normaliser(torch.randn(model.refine.in_channels), torch.rand(model.refine.in_channels) + 0.5)
+    w, m = model.save(tmp_path / "m")
+    assert w.name == "m.safetensors" and m.name == "m.json"
+    raw = w.read_bytes()
+    n = int.from_bytes(raw[:8], "little")
+    header = json.loads(raw[8 : 8 + n])  # safetensors: length-prefixed JSON header, no pickle
+    assert "refine.stem.weight" in header and "refine.feature_mean" in header
+    cfg = json.loads(m.read_text())
+    assert cfg["camera"] == REF.to_dict() and cfg["tile"] == 32 and cfg["refine"]["hidden"] == 8
+    loaded = DFDModel.load(tmp_path / "m.json")
+    i1, i2 = _pair(2, 64, 96)
+    for a, b in zip(model(i1, i2), loaded(i1, i2)):
+        assert torch.equal(a, b)
+    assert loaded.confidence_scale == 0.02
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(ModelError):
+        DFDModel.load(tmp_path / "missing")
+    model = DFDModel(REF, tile=32, stride=16, hidden=8, blocks=1)
+    w, m = model.save(tmp_path / "m")
+    w.write_bytes(b"not a safetensors file")
+    with pytest.raises(ModelError):
+        DFDModel.load(tmp_path / "m")
+    model.save(tmp_path / "m")
+    cfg = json.loads(m.read_text())
+    cfg["refine"]["hidden"] = 16
+    m.write_text(json.dumps(cfg))
+    with pytest.raises(ModelError):
+        DFDModel.load(tmp_path / "m")
+    m.write_text("{not json")
+    with pytest.raises(ModelError):
+        DFDModel.load(tmp_path / "m")
+
+
+def test_constructor_errors():
+    with pytest.raises(InputError):
+        DFDModel(REF, analytic={"tile": 32})
+    with pytest.raises(InputError):
+        DFDModel(REF, bogus=3)
+    with pytest.raises(InputError):
+        DFDModel(REF, confidence_scale=0)
