@@ -21,6 +21,7 @@ __all__ = ["main", "build_parser", "SUBCOMMAND_MODULES"]
 #: module path of each subcommand, in the order ``tdfd --help`` lists them.
 SUBCOMMAND_MODULES: list[str] = [
     "tdfd.driver.cli",
+    "tdfd.autofocus.cli",
 ]
 
 

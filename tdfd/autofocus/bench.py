@@ -78,6 +78,7 @@ __all__ = [
     "SimBench",
     "trial_depths",
     "DEFAULT_READOUT_HW",
+    "BENCH_TEXTURE_FAMILIES",
     "BENCH_TEMPERATURE_LIMITS_C",
 ]
 
@@ -163,29 +164,46 @@ class CameraTiming:
 
 @dataclass(frozen=True)
 class SensorNoise:
-    """Poisson–Gaussian sensor noise and quantisation (used until :mod:`tdfd.sensor` provides one).
+    """Sensor noise and quantisation of the virtual camera.
+
+    Uses :class:`tdfd.sensor.SensorModel` (Poisson–Gaussian noise, full-well clipping,
+    black level, quantisation) when that module is available, else an equivalent
+    Poisson–Gaussian model without black level.
 
     Attributes:
         full_well_e: electrons at white level.
         read_noise_e: read noise, electrons RMS.
-        bits: ADC bits (output quantised to ``2**bits - 1`` levels).
+        bits: ADC bits.
+        black_level_dn: black level in codes (kept in the output, as a raw frame has it).
         enabled: ``False`` gives noise-free, unquantised frames.
     """
 
     full_well_e: float = 10000.0
     read_noise_e: float = 3.0
     bits: int = 12
+    black_level_dn: float = 64.0
     enabled: bool = True
 
     def apply(self, image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Noisy, quantised frame in [0, 1] from a noise-free linear image in [0, 1]."""
+        """Noisy, quantised frame in [0, 1] from a noise-free linear irradiance in [0, 1]."""
         x = np.clip(image, 0.0, 1.0).astype(np.float64)
         if not self.enabled:
             return x.astype(np.float32)
-        electrons = rng.poisson(x * self.full_well_e) + rng.normal(0.0, self.read_noise_e, x.shape)
-        levels = 2**self.bits - 1
-        y = np.clip(np.round(electrons / self.full_well_e * levels), 0, levels) / levels
-        return y.astype(np.float32)
+        seed = int(rng.integers(0, 2**62))
+        try:
+            import torch
+
+            from ..sensor import SensorModel
+        except ImportError:
+            electrons = rng.poisson(x * self.full_well_e) + rng.normal(0.0, self.read_noise_e, x.shape)
+            levels = 2**self.bits - 1
+            y = np.clip(np.round(electrons / self.full_well_e * levels), 0, levels) / levels
+            return y.astype(np.float32)
+        model = SensorModel(full_well_e=self.full_well_e, read_noise_e=self.read_noise_e, bits=self.bits,
+                            black_level_dn=self.black_level_dn)
+        with torch.no_grad():
+            y = model(torch.from_numpy(x).float()[None, None], generator=torch.Generator().manual_seed(seed))
+        return y[0, 0].numpy().astype(np.float32)
 
 
 def _procedural_texture(hw: tuple[int, int], seed: int, albedo_contrast: float = 1.0) -> np.ndarray:
@@ -204,25 +222,24 @@ def _procedural_texture(hw: tuple[int, int], seed: int, albedo_contrast: float =
     return np.clip(0.5 + 0.16 * albedo_contrast * x, 0.1, 0.9)
 
 
-def _library_texture(hw: tuple[int, int], seed: int) -> np.ndarray | None:
-    """A texture from :mod:`tdfd.textures` when that module is available."""
+#: texture families of the bench's default targets (textured surfaces; ``flat`` and
+#: ``gradient`` are the texture-less cases, tested separately with ``uniform=True``).
+BENCH_TEXTURE_FAMILIES = ("fractal", "bandlimited", "voronoi", "dead_leaves", "stripes", "checkers", "dots",
+                          "line_art", "glyphs")
+
+
+def _library_texture(hw: tuple[int, int], seed: int, families: Sequence[str] = BENCH_TEXTURE_FAMILIES
+                     ) -> tuple[np.ndarray, str] | None:
+    """A seeded texture from :func:`tdfd.textures.random_texture` (``None`` if unavailable)."""
     try:
-        from .. import textures  # type: ignore[attr-defined]
+        import torch
+
+        from ..textures import random_texture
     except ImportError:
         return None
-    for name in ("procedural_texture", "texture", "make_texture", "random_texture"):
-        fn = getattr(textures, name, None)
-        if fn is None:
-            continue
-        try:
-            out = fn(hw, seed=seed)
-        except TypeError:
-            continue
-        arr = out.detach().cpu().numpy() if hasattr(out, "detach") else np.asarray(out)
-        arr = np.squeeze(arr).astype(np.float64)
-        if arr.shape == tuple(hw):
-            return arr
-    return None
+    g = torch.Generator().manual_seed(int(seed))
+    tex, params = random_texture(g, hw, families=list(families), albedo=(0.5, 0.9), contrast=(0.3, 1.0))
+    return tex[0, 0].double().numpy(), str(params.get("family", "texture"))
 
 
 @dataclass
@@ -257,14 +274,26 @@ class Scene:
         return float(1.0 / np.mean(1.0 / roi.crop(self.depth_m)))
 
     @classmethod
-    def texture_plane(cls, hw: tuple[int, int], depth_m: float, seed: int = 0, uniform: bool = False) -> "Scene":
-        """A procedural texture (seeded) on a plane at ``depth_m``; ``uniform``: a texture-less grey plane."""
+    def texture_plane(cls, hw: tuple[int, int], depth_m: float, seed: int = 0, uniform: bool = False,
+                      families: Sequence[str] | None = None) -> "Scene":
+        """A procedural texture (seeded) on a plane at ``depth_m``.
+
+        Args:
+            hw: ``(H, W)`` pixels.
+            depth_m: plane distance (m).
+            seed: texture seed.
+            uniform: a texture-less grey plane instead.
+            families: :mod:`tdfd.textures` families to draw from (default
+                :data:`BENCH_TEXTURE_FAMILIES`); ``("pink",)`` is a built-in 1/f noise.
+        """
+        name = "uniform"
+        families = tuple(families) if families else BENCH_TEXTURE_FAMILIES
         if uniform:
             sharp = np.full(hw, 0.5)
         else:
-            lib = _library_texture(hw, seed)
-            sharp = lib if lib is not None else _procedural_texture(hw, seed)
-        return cls(sharp, np.full(hw, float(depth_m)), name="uniform" if uniform else f"texture#{seed}")
+            lib = None if families == ("pink",) else _library_texture(hw, seed, families)
+            sharp, name = lib if lib is not None else (_procedural_texture(hw, seed), "pink noise")
+        return cls(sharp, np.full(hw, float(depth_m)), name=name)
 
     @classmethod
     def from_files(cls, image_path: str | Path, depth_path: str | Path, hw: tuple[int, int] | None = None,
@@ -642,6 +671,7 @@ class TrialRecord:
     compute_ms: float | None = None
     verified: bool | None = None
     trial: int = 0
+    scene: str = ""
     extra: dict = field(default_factory=dict)
 
     @property
@@ -692,6 +722,7 @@ class SimBench:
         driver_timeout_s: the driver's reply timeout (s).
         controller: extra keyword arguments for :class:`DFDController`.
         contrast: keyword arguments for the contrast search (strategy, step, ...).
+        texture_families: texture families of the default scenes (see :meth:`Scene.texture_plane`).
     """
 
     def __init__(self, camera: Camera | None = None, estimator: Estimator | None = None,
@@ -699,7 +730,7 @@ class SimBench:
                  timing: CameraTiming = CameraTiming(), noise: SensorNoise = SensorNoise(), settle_s: float = 0.015,
                  compute_s: float | str = "calibrated", seed: int = 0, psf: Any = "gaussian", scene: Scene | None = None,
                  faults: Any | None = None, driver_timeout_s: float = 0.1, controller: dict | None = None,
-                 contrast: dict | None = None) -> None:
+                 contrast: dict | None = None, texture_families: Sequence[str] | None = None) -> None:
         if camera is None:
             camera = estimator.camera if estimator is not None else Camera.preset("reference")
         self.camera, self.estimator = camera, estimator
@@ -712,6 +743,7 @@ class SimBench:
         self.driver_timeout_s = float(driver_timeout_s)
         self.controller_kwargs = dict(controller or {})
         self.contrast_kwargs = dict(contrast or {})
+        self.texture_families = tuple(texture_families) if texture_families else None
         self.clock = SimClock()
         self.rng = np.random.default_rng(self.seed)
         self.lens: EmulatedLens | None = None
@@ -767,7 +799,8 @@ class SimBench:
         """The scene of one trial: the user's scene at ``target_m``, or a seeded texture plane."""
         if self.user_scene is not None and not uniform:
             return self.user_scene.at_distance(target_m, self.roi)
-        return Scene.texture_plane(self.readout_hw, target_m, seed=self.seed * 100003 + trial, uniform=uniform)
+        return Scene.texture_plane(self.readout_hw, target_m, seed=self.seed * 100003 + trial, uniform=uniform,
+                                   families=self.texture_families)
 
     def make_controller(self, method: str, **overrides: Any) -> StateMachine:
         """A fresh controller for ``method`` (``"dfd"`` or ``"contrast"``) with the bench's settings."""
@@ -819,7 +852,9 @@ class SimBench:
             result = drive(ctrl, plant)
         finally:
             self.lens.set_faults(None)
-        return self._record(result, target, method, plant, trial)
+        rec = self._record(result, target, method, plant, trial)
+        rec.scene = scene.name
+        return rec
 
     def _record(self, result: AFResult, target: float, requested: str, plant: BenchPlant, trial: int) -> TrialRecord:
         from ..optics.thin_lens import camera_blur_radii_px

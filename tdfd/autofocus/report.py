@@ -107,7 +107,11 @@ def summarise(records: Sequence[Any], settings: dict[str, Any] | None = None) ->
     for i, r in enumerate(records):
         if r.status != "focused" or r.reason or r.method != r.requested:
             notes.append({"index": i, "trial": r.trial, "requested": r.requested, "method": r.method,
-                          "status": r.status, "reason": r.reason})
+                          "status": r.status, "reason": r.reason, "scene": getattr(r, "scene", "")})
+        elif not r.in_focus:
+            notes.append({"index": i, "trial": r.trial, "requested": r.requested, "method": r.method,
+                          "status": "out of focus", "reason": f"residual blur {r.residual_blur_px:.2f} px",
+                          "scene": getattr(r, "scene", "")})
     summary["notes"] = notes
     if settings:
         summary["settings"] = settings
@@ -155,6 +159,9 @@ def format_table(records: Iterable[Any]) -> str:
         elif r.reason and r.status == "focused":
             result += f" ({r.reason})"
         method = r.requested if r.method == r.requested else f"{r.requested}>{r.method[:3]}"
+        scene = getattr(r, "scene", "")
+        if scene and not r.in_focus:
+            result += f" [{scene}]"
         lines.append(f"{r.trial:>3} {method:<9} {_fmt(r.target_depth_m, '8.3f')} {_fmt(r.estimated_depth_m, '7.3f'):>7} "
                      f"{_fmt(r.ideal_power_dpt, '9.3f')} {_fmt(r.final_power_dpt, '9.3f')} "
                      f"{_fmt(r.residual_blur_px, '7.2f')} {r.frames:>6d} {r.lens_commands:>4d} "

@@ -1,0 +1,307 @@
+"""The DFD controller as a pure state machine: scripted observations, faults, fall-backs."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tdfd import Camera
+from tdfd.autofocus.contrast import ContrastController
+from tdfd.autofocus.controller import (
+    Capture,
+    CaptureFault,
+    ControllerError,
+    DFDController,
+    Done,
+    Estimate,
+    EstimateFault,
+    Estimation,
+    Frame,
+    Halt,
+    LensAck,
+    LensFault,
+    Roi,
+    SetPower,
+    State,
+    drive,
+)
+
+CAM = Camera.preset("reference")
+P1, P2 = CAM.lens_powers_dpt
+RNG = np.random.default_rng(0)
+IMG = RNG.uniform(0.3, 0.7, (96, 128)).astype(np.float32)
+
+
+def ack(p: float, t: float = 0.0) -> LensAck:
+    return LensAck(p, t, t + 0.015)
+
+
+def frame(tag: str, p: float, t: float = 0.02, lens=None, image=IMG) -> Frame:
+    return Frame(image, p, t, t + 0.002, t + 0.005, tag, lens=lens)
+
+
+def grid(depth: float, conf: float = 0.9, shape=(2, 3)) -> Estimation:
+    return Estimation(np.full(shape, depth, np.float32), np.full(shape, conf, np.float32), 64, 32, t_s=0.05)
+
+
+def run_to_estimate(ctrl: DFDController) -> Estimate:
+    cmd = ctrl.start()
+    assert isinstance(cmd, SetPower) and cmd.power_dpt == P1 and cmd.settle_s == ctrl.settle_s
+    assert ctrl.state is State.MOVE_F1
+    cmd = ctrl.step(ack(P1))
+    assert isinstance(cmd, Capture) and cmd.tag == "f1" and cmd.then_power_dpt == P2
+    assert ctrl.state is State.CAPTURE_F1
+    cmd = ctrl.step(frame("f1", P1, lens=ack(P2, 0.018)))
+    assert isinstance(cmd, Capture) and cmd.tag == "f2" and cmd.then_power_dpt is None
+    assert ctrl.state is State.CAPTURE_F2
+    cmd = ctrl.step(frame("f2", P2, t=0.034))
+    assert isinstance(cmd, Estimate) and ctrl.state is State.ESTIMATE
+    return cmd
+
+
+def test_single_shot_transitions_and_counts():
+    ctrl = DFDController(CAM)
+    est = run_to_estimate(ctrl)
+    assert est.image_f1.shape == IMG.shape  # no grid given: the full frame
+    cmd = ctrl.step(grid(0.4))
+    assert isinstance(cmd, SetPower) and ctrl.state is State.MOVE_FOCUS
+    assert cmd.power_dpt == pytest.approx(CAM.in_focus_power_dpt(0.4))
+    done = ctrl.step(LensAck(cmd.power_dpt, 0.06, 0.075))
+    assert isinstance(done, Done) and ctrl.state is State.DONE and ctrl.done
+    r = done.result
+    assert (r.status, r.method, r.frames, r.lens_commands) == ("focused", "dfd", 2, 3)
+    assert r.estimated_depth_m == pytest.approx(0.4, rel=1e-6)
+    assert r.t_start_s == 0.0 and r.t_focus_s == pytest.approx(0.075)
+    assert r.time_to_focus_s == pytest.approx(0.075)
+    with pytest.raises(ControllerError):
+        ctrl.step(ack(1.0))
+
+
+def test_grid_crop_sent_for_estimation():
+    ctrl = DFDController(CAM, grid=(64, 32), roi=Roi(64, 16, 64, 64))
+    est = run_to_estimate(ctrl)
+    assert est.offset == (0, 32) and est.image_f1.shape == (96, 96)
+    np.testing.assert_array_equal(est.image_f1, IMG[0:96, 32:128])
+
+
+def test_wrong_observation_and_not_started():
+    ctrl = DFDController(CAM)
+    with pytest.raises(ControllerError):
+        ctrl.step(ack(P1))
+    ctrl.start()
+    with pytest.raises(ControllerError):
+        ctrl.step(frame("f1", P1))  # answers a Capture, but a SetPower is pending
+
+
+def test_lens_fault_retried_then_ok():
+    ctrl = DFDController(CAM, lens_retries=2)
+    ctrl.start()
+    cmd = ctrl.step(LensFault(P1, "LensTimeoutError: no reply"))
+    assert isinstance(cmd, SetPower) and cmd.power_dpt == P1
+    cmd = ctrl.step(ack(P1))
+    assert isinstance(cmd, Capture)
+    assert ctrl.result.lens_commands == 3  # two SetPower attempts + the exposure-end move just issued
+
+
+def test_persistent_lens_fault_fails_with_reason():
+    ctrl = DFDController(CAM, lens_retries=1)
+    cmd = ctrl.start()
+    for _ in range(2):
+        assert isinstance(cmd, SetPower)
+        cmd = ctrl.step(LensFault(P1, "LensConnectionError: port vanished"))
+    assert isinstance(cmd, Done)
+    r = cmd.result
+    assert r.status == "failed" and not r.ok
+    assert "port vanished" in r.error and "2 attempts" in r.error
+
+
+def test_failed_exposure_end_move_is_retried():
+    ctrl = DFDController(CAM)
+    ctrl.start()
+    ctrl.step(ack(P1))
+    cmd = ctrl.step(frame("f1", P1, lens=LensFault(P2, "ChecksumError")))
+    assert isinstance(cmd, SetPower) and cmd.power_dpt == P2
+    cmd = ctrl.step(ack(P2))
+    assert isinstance(cmd, Capture) and cmd.tag == "f2"
+    assert ctrl.result.frames == 1 and ctrl.result.lens_commands == 3
+
+
+def test_capture_fault_retry_then_fail():
+    ctrl = DFDController(CAM, capture_retries=1)
+    ctrl.start()
+    ctrl.step(ack(P1))
+    cmd = ctrl.step(CaptureFault("f1", "no frame", lens=ack(P2)))
+    # the lens already moved to P2 with the failed capture: the retry does not move it again
+    assert isinstance(cmd, Capture) and cmd.tag == "f1" and cmd.then_power_dpt is None
+    done = ctrl.step(CaptureFault("f1", "no frame"))
+    assert isinstance(done, Done) and done.result.status == "failed" and "no frame" in done.result.error
+
+
+def test_estimate_fault_fails():
+    ctrl = DFDController(CAM)
+    run_to_estimate(ctrl)
+    done = ctrl.step(EstimateFault("ModelError: broken"))
+    assert isinstance(done, Done) and done.result.status == "failed" and "broken" in done.result.error
+
+
+def test_low_confidence_falls_back_to_contrast():
+    ctrl = DFDController(CAM, min_confidence=0.2)
+    run_to_estimate(ctrl)
+    cmd = ctrl.step(grid(0.5, conf=0.01))
+    assert ctrl.state is State.CONTRAST and isinstance(cmd, SetPower)
+    assert "confidence" in ctrl.result.fallback_reason
+    # feed scan frames until the search ends; sharpness peaks at the 3rd scan point
+    blur = [4.0, 2.0, 0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 12.0]
+    import cv2
+
+    base = RNG.uniform(0.2, 0.8, (96, 128)).astype(np.float32)
+    k = 0
+    cmd = ctrl.step(ack(cmd.power_dpt))
+    while not isinstance(cmd, Done):
+        if isinstance(cmd, Capture):
+            s = blur[min(k, len(blur) - 1)]
+            img = cv2.GaussianBlur(base, (0, 0), s) if s > 0 else base
+            nxt = ack(cmd.then_power_dpt) if cmd.then_power_dpt is not None else None
+            cmd = ctrl.step(Frame(img, 0.0, 0.1 * k, 0.1 * k, 0.1 * k, cmd.tag, lens=nxt))
+            k += 1
+        else:
+            assert isinstance(cmd, SetPower)
+            cmd = ctrl.step(ack(cmd.power_dpt))
+    r = cmd.result
+    assert r.status == "focused" and r.method == "contrast" and r.frames == 2 + k
+    assert 4 <= k <= 6  # the scan stopped early, after the peak
+
+
+def test_no_fallback_fails_on_low_confidence():
+    ctrl = DFDController(CAM, fallback=False)
+    run_to_estimate(ctrl)
+    done = ctrl.step(grid(0.5, conf=0.0))
+    assert isinstance(done, Done) and done.result.status == "failed" and "confidence" in done.result.error
+
+
+def test_clamped_with_explicit_error():
+    ctrl = DFDController(CAM, power_limits_dpt=(-1.0, 2.5))
+    run_to_estimate(ctrl)
+    cmd = ctrl.step(grid(0.25))  # needs 4 dpt
+    assert isinstance(cmd, SetPower) and cmd.power_dpt == 2.5
+    done = ctrl.step(ack(2.5))
+    r = done.result
+    assert r.clamped and r.status == "focused" and "outside the lens range" in r.error
+
+
+def test_dry_run_never_moves_the_lens():
+    ctrl = DFDController(CAM, dry_run=True)
+    cmd = ctrl.start()
+    assert isinstance(cmd, Capture) and cmd.then_power_dpt is None
+    cmd = ctrl.step(frame("f1", float("nan")))
+    assert isinstance(cmd, Capture) and cmd.then_power_dpt is None
+    cmd = ctrl.step(frame("f2", float("nan")))
+    assert isinstance(cmd, Estimate)
+    done = ctrl.step(grid(0.5))
+    r = done.result
+    assert r.status == "dry-run" and r.ok and r.lens_commands == 0 and r.power_dpt == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("sharper", [True, False])
+def test_verify(sharper):
+    import cv2
+
+    ctrl = DFDController(CAM, verify=True)
+    ctrl.start()
+    blurred = cv2.GaussianBlur(IMG, (0, 0), 2.0)
+    ctrl.step(ack(P1))
+    ctrl.step(frame("f1", P1, image=blurred, lens=ack(P2)))
+    ctrl.step(frame("f2", P2, image=blurred))
+    cmd = ctrl.step(grid(0.5))
+    cmd = ctrl.step(ack(cmd.power_dpt, 0.05))
+    assert isinstance(cmd, Capture) and cmd.tag == "verify" and ctrl.state is State.VERIFY
+    cmd = ctrl.step(frame("verify", 2.0, t=0.07, image=IMG if sharper else cv2.GaussianBlur(IMG, (0, 0), 4.0)))
+    if sharper:
+        assert isinstance(cmd, Done) and cmd.result.verified is True and cmd.result.frames == 3
+        assert cmd.result.t_focus_s == pytest.approx(0.075)
+    else:
+        assert ctrl.state is State.CONTRAST and ctrl.result.verified is False
+        assert "verification failed" in ctrl.result.fallback_reason
+
+
+def test_halt_ends_the_run():
+    ctrl = DFDController(CAM)
+    ctrl.start()
+    done = ctrl.step(Halt(0.5))
+    assert isinstance(done, Done) and done.result.status == "halted" and done.result.error is None
+
+
+# ------------------------------------------------------------ driven against a fake plant
+class FakePlant:
+    """A tiny in-process plant: instant first-order-free lens, Gaussian-blur renderer."""
+
+    def __init__(self, depth_m: float, fail_lens: int = 0) -> None:
+        import torch
+
+        from tdfd.optics.render import render_at_power
+
+        self.depth, self.t, self.power, self.fail_lens = depth_m, 0.0, 0.0, fail_lens
+        g = torch.Generator().manual_seed(1)
+        self.sharp = torch.rand(1, 1, 128, 160, generator=g) * 0.6 + 0.2
+        self.render = lambda p: render_at_power(CAM, self.sharp, torch.full_like(self.sharp, depth_m), p)[0, 0].numpy()
+        self.ready = 0.0
+
+    def now(self):
+        return self.t
+
+    def should_halt(self):
+        return False
+
+    def set_power(self, cmd):
+        if self.fail_lens:
+            self.fail_lens -= 1
+            return LensFault(cmd.power_dpt, "injected", self.t)
+        self.power, self.ready = cmd.power_dpt, self.t + cmd.settle_s
+        return LensAck(cmd.power_dpt, self.t, self.ready)
+
+    def capture(self, cmd):
+        self.t = max(self.t, self.ready)
+        img = self.render(self.power).astype(np.float32)
+        p, self.t = self.power, self.t + 0.005
+        lens = self.set_power(SetPower(cmd.then_power_dpt, cmd.settle_s)) if cmd.then_power_dpt is not None else None
+        return Frame(img, p, self.t - 0.005, self.t - 0.003, self.t, cmd.tag, lens=lens)
+
+    def estimate(self, cmd):
+        from tdfd.autofocus.estimators import AnalyticEstimator
+
+        d, c = AnalyticEstimator(CAM)(cmd.image_f1, cmd.image_f2)
+        self.t += 0.003
+        return Estimation(d, c, 64, 32, t_s=self.t)
+
+
+@pytest.mark.parametrize("depth", [0.35, 0.9])
+def test_drive_fake_plant_in_focus(depth):
+    from tdfd.optics.thin_lens import camera_blur_radii_px
+
+    res = drive(DFDController(CAM, grid=(64, 32), lens_retries=2), FakePlant(depth, fail_lens=1))
+    assert res.status == "focused" and res.frames == 2 and res.lens_commands == 4
+    assert abs(float(camera_blur_radii_px(CAM, depth, res.power_dpt))) < 0.5
+
+
+def test_drive_contrast_fake_plant():
+    from tdfd.optics.thin_lens import camera_blur_radii_px
+
+    res = drive(ContrastController(CAM), FakePlant(0.45))
+    assert res.status == "focused" and res.method == "contrast" and res.frames >= 4
+    assert abs(float(camera_blur_radii_px(CAM, 0.45, res.power_dpt))) < 1.0
+    res = drive(ContrastController(CAM, strategy="golden"), FakePlant(0.7))
+    assert res.status == "focused" and abs(float(camera_blur_radii_px(CAM, 0.7, res.power_dpt))) < 1.0
+
+
+def test_options_validated():
+    from tdfd.errors import InputError
+
+    with pytest.raises(InputError):
+        DFDController(CAM, min_confidence=2.0)
+    with pytest.raises(InputError):
+        ContrastController(CAM, strategy="random")
+    with pytest.raises(InputError):
+        DFDController(CAM, settle_s=-1)
+    assert math.isclose(DFDController(CAM).settle_s, 0.015)
