@@ -20,6 +20,7 @@ __all__ = ["main", "build_parser", "SUBCOMMAND_MODULES"]
 
 #: module path of each subcommand, in the order ``tdfd --help`` lists them.
 SUBCOMMAND_MODULES: list[str] = [
+    "tdfd.depth_cli",
     "tdfd.driver.cli",
     "tdfd.autofocus.cli",
 ]

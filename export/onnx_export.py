@@ -1,0 +1,164 @@
+r"""Export a DFD model (analytic layer + CNN) to one self-contained ONNX file.
+
+The model is any ``nn.Module`` with ``forward(image_f1, image_f2) -> (depth, confidence,
+depth_analytic)`` and attributes ``camera`` (:class:`tdfd.Camera`), ``tile`` and ``stride``
+— :class:`tdfd.model.DFDModel`, or the analytic :class:`tdfd.dfd.FourierRatioDFD` wrapped
+to return its depth twice.
+
+The graph is captured with ``torch.export`` (``dynamo=True``) with symbolic batch, height
+and width; the tile-grid arithmetic (``h = (H - tile) // stride + 1``) stays symbolic
+because the analytic layer computes it with strided convolutions, slices and reshapes
+only. Input validation is switched off while exporting (the runtime validates on the
+device, :mod:`tdfd.runtime`). The ONNX optimiser (``optimize=True``) is safe for the
+analytic layer: every epsilon it adds is ``>= 1e-6`` (see the exporter's constant folding
+note in ``docs``); :func:`export.verify.verify_onnx` checks parity either way.
+
+Example:
+    >>> import tempfile, pathlib, onnx
+    >>> from tdfd import Camera
+    >>> from tdfd.model import DFDModel
+    >>> model = DFDModel(Camera.preset("reference"), tile=64, stride=32, hidden=8, blocks=1)
+    >>> path = export_model(model, pathlib.Path(tempfile.mkdtemp()) / "m.onnx")  # doctest: +SKIP
+    >>> [i.name for i in onnx.load(path).graph.input]  # doctest: +SKIP
+    ['image_f1', 'image_f2']
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import warnings
+from pathlib import Path
+from typing import Iterator
+
+import onnx
+import torch
+from torch import nn
+
+import tdfd
+from tdfd.errors import ModelError
+
+__all__ = ["INPUT_NAMES", "OUTPUT_NAMES", "METADATA_KEYS", "MIN_OPSET", "export_model", "onnx_metadata"]
+
+logger = logging.getLogger(__name__)
+
+#: Graph input names (``CONTRACT.md`` section 2).
+INPUT_NAMES = ("image_f1", "image_f2")
+#: Graph output names, in the order the model returns them.
+OUTPUT_NAMES = ("depth", "confidence", "depth_analytic")
+#: ``metadata_props`` keys the contract requires, each a JSON string.
+METADATA_KEYS = ("tdfd.camera", "tdfd.grid", "tdfd.version")
+#: Lowest ONNX opset the contract allows.
+MIN_OPSET = 18
+
+
+def _check_model(model: nn.Module) -> None:
+    if not isinstance(model, nn.Module):
+        raise ModelError(f"expected a torch.nn.Module, got {type(model).__name__}")
+    missing = [a for a in ("camera", "tile", "stride") if not hasattr(model, a)]
+    if missing:
+        raise ModelError(f"{type(model).__name__} lacks {missing}: the export needs the camera and the tile grid")
+    if not hasattr(model.camera, "to_dict"):
+        raise ModelError(f"model.camera must be a tdfd.Camera, got {type(model.camera).__name__}")
+
+
+def onnx_metadata(model: nn.Module) -> dict[str, str]:
+    """The ``metadata_props`` written into the ONNX file, each value a JSON string.
+
+    ``tdfd.camera`` is ``json.dumps(model.camera.to_dict())``, ``tdfd.grid`` is
+    ``{"tile", "stride"}``, ``tdfd.version`` the exporting package version (a JSON string
+    literal such as ``"0.1.0"``). A model with a ``config()`` method (``DFDModel``) also
+    gets ``tdfd.model``, its full description (informational).
+    """
+    _check_model(model)
+    meta = {
+        "tdfd.camera": json.dumps(model.camera.to_dict()),
+        "tdfd.grid": json.dumps({"tile": int(model.tile), "stride": int(model.stride)}),
+        "tdfd.version": json.dumps(tdfd.__version__),
+    }
+    config = getattr(model, "config", None)
+    if callable(config):
+        try:
+            meta["tdfd.model"] = json.dumps(config(), sort_keys=True)
+        except (TypeError, ValueError) as exc:  # not JSON-serialisable: informational only
+            logger.warning("model config not stored in the ONNX metadata: %s", exc)
+    return meta
+
+
+@contextlib.contextmanager
+def _export_mode(model: nn.Module) -> Iterator[None]:
+    """``eval()`` and input validation off for every submodule; restored afterwards."""
+    saved = [(m, m.validate) for m in model.modules() if isinstance(getattr(m, "validate", None), bool)]
+    was_training = model.training
+    try:
+        for m, _ in saved:
+            m.validate = False
+        model.eval()
+        yield
+    finally:
+        for m, flag in saved:
+            m.validate = flag
+        model.train(was_training)
+
+
+def _example_inputs(tile: int, stride: int, batch: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
+    # A size that is no multiple of the stride and not square, so nothing specialises.
+    g = torch.Generator().manual_seed(0)
+    h, w = 2 * tile + stride + 3, 3 * tile + stride + 5
+    x1 = torch.rand(batch, 1, h, w, generator=g) * 0.8 + 0.1
+    return x1, (x1.roll(1, -1) * 0.9 + 0.05)
+
+
+def export_model(model: nn.Module, path: str | Path, opset: int = MIN_OPSET, optimize: bool = True) -> Path:
+    """Export ``model`` to one self-contained ``.onnx`` file following the contract.
+
+    Args:
+        model: module with ``forward(image_f1, image_f2) -> (depth, confidence,
+            depth_analytic)`` and attributes ``camera``, ``tile``, ``stride``.
+        path: output file (parent folders are created).
+        opset: ONNX opset, at least 18.
+        optimize: run the ONNX optimiser (constant folding, fusions) on the graph.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        ModelError: the model lacks the contract's attributes or outputs, the opset is
+            below 18, or the exporter fails (its message is included).
+    """
+    _check_model(model)
+    if int(opset) < MIN_OPSET:
+        raise ModelError(f"the contract needs opset >= {MIN_OPSET}, got {opset}")
+    tile, stride = int(model.tile), int(model.stride)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    x1, x2 = _example_inputs(tile, stride)
+    batch = torch.export.Dim("batch", min=1)
+    height = torch.export.Dim("height", min=tile)
+    width = torch.export.Dim("width", min=tile)
+    dims = {0: batch, 2: height, 3: width}
+    with _export_mode(model), torch.no_grad():
+        out = model(x1, x2)
+        if not isinstance(out, (tuple, list)) or len(out) != len(OUTPUT_NAMES):
+            raise ModelError(f"the model must return {OUTPUT_NAMES}, got {type(out).__name__} of length "
+                             f"{len(out) if isinstance(out, (tuple, list)) else 1}")
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                program = torch.onnx.export(
+                    model, (x1, x2), dynamo=True, opset_version=int(opset), input_names=list(INPUT_NAMES),
+                    output_names=list(OUTPUT_NAMES), dynamic_shapes=(dims, dims), optimize=optimize,
+                    external_data=False, verbose=False, report=False)
+        except Exception as exc:  # the exporter raises many types; surface them as one
+            raise ModelError(f"ONNX export of {type(model).__name__} failed: {type(exc).__name__}: {exc}") from exc
+    proto = program.model_proto
+    del proto.metadata_props[:]
+    for key, value in onnx_metadata(model).items():
+        proto.metadata_props.add(key=key, value=value)
+    proto.doc_string = (f"tdfd {tdfd.__version__} depth from defocus: image_f1/image_f2 float32 [N,1,H,W] in [0,1] "
+                        f"-> depth/confidence/depth_analytic [N,1,h,w] on the {tile}/{stride} tile grid (metres).")
+    onnx.save_model(proto, str(path), save_as_external_data=False)
+    logger.info("exported %s (opset %d, %.1f kB)", path, opset, path.stat().st_size / 1024)
+    return path
+

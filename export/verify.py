@@ -1,0 +1,324 @@
+r"""Verify an exported ONNX model: checker, contract, and ONNX Runtime versus torch parity.
+
+:func:`verify_onnx` runs, in order:
+
+1. ``onnx.checker.check_model(full_check=True)`` (which includes strict shape inference);
+2. :func:`check_contract`: opset >= 18, no external data, input/output names, dtypes and
+   ranks, symbolic batch/height/width, and the ``tdfd.*`` metadata (equal to the model's
+   camera and grid when the model is given);
+3. parity: the file in ONNX Runtime against the torch model in eager mode on realistic
+   rendered pairs (:func:`realistic_pairs`: procedural ``1/f`` textures with edges, two
+   depth planes per sample, sensor noise) at several image sizes, including sizes that are
+   no multiple of the stride, and several batch sizes. ``depth`` and ``depth_analytic``
+   must agree within ``rtol`` (relative, default ``1e-4``), ``confidence`` within
+   ``conf_atol`` (absolute; it lies in [0, 1]).
+
+Any failure raises :class:`tdfd.errors.ModelError` whose message names the check, and
+for parity the worst discrepancy (size, batch, output, tile, both values).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import onnx
+import torch
+from torch import nn
+
+from tdfd.camera import Camera
+from tdfd.errors import ModelError
+from tdfd.grid import grid_shape
+
+from .onnx_export import INPUT_NAMES, METADATA_KEYS, MIN_OPSET, OUTPUT_NAMES, _export_mode
+
+__all__ = ["DEFAULT_SIZES", "DEFAULT_BATCHES", "ParityReport", "check_contract", "realistic_pairs",
+           "procedural_texture", "verify_onnx"]
+
+logger = logging.getLogger(__name__)
+
+#: Image sizes ``(H, W)`` of the parity check: one tile, odd sizes, VGA.
+DEFAULT_SIZES: tuple[tuple[int, int], ...] = ((64, 64), (150, 203), (480, 640))
+#: Batch sizes of the parity check.
+DEFAULT_BATCHES: tuple[int, ...] = (1, 3)
+
+
+# ---------------------------------------------------------------------------- scenes
+def procedural_texture(batch: int, height: int, width: int, generator: torch.Generator) -> torch.Tensor:
+    """Natural-looking radiance ``(B, 1, H, W)`` in ``[0.05, 0.95]``.
+
+    Multi-octave value noise with a ``1/f`` amplitude spectrum (bilinear upsampling of
+    random grids whose amplitude halves with each octave) plus a few random rectangles
+    (sharp edges), normalised per sample.
+    """
+    img = torch.zeros(batch, 1, height, width, dtype=torch.float64)
+    size, amp = 4, 1.0
+    while size <= 2 * max(height, width):
+        g = torch.rand(batch, 1, size, size, generator=generator, dtype=torch.float64) - 0.5
+        img += amp * torch.nn.functional.interpolate(g, size=(height, width), mode="bilinear", align_corners=False)
+        size, amp = size * 2, amp * 0.6
+    for b in range(batch):
+        for _ in range(6):
+            y0, x0 = (int(torch.randint(0, n, (1,), generator=generator)) for n in (height, width))
+            dy, dx = (int(torch.randint(n // 10 + 1, n // 3 + 2, (1,), generator=generator)) for n in (height, width))
+            img[b, :, y0:y0 + dy, x0:x0 + dx] += float(torch.rand(1, generator=generator, dtype=torch.float64)) - 0.5
+    lo = img.amin(dim=(1, 2, 3), keepdim=True)
+    hi = img.amax(dim=(1, 2, 3), keepdim=True)
+    return (0.05 + 0.9 * (img - lo) / (hi - lo).clamp_min(1e-12)).float()
+
+
+def _texture(batch: int, height: int, width: int, generator: torch.Generator) -> torch.Tensor:
+    try:  # the library's texture generator, once it exists
+        from tdfd import textures  # type: ignore[attr-defined]
+    except ImportError:
+        return procedural_texture(batch, height, width, generator)
+    fn = getattr(textures, "procedural_texture", None) or getattr(textures, "texture", None)
+    if fn is None:
+        return procedural_texture(batch, height, width, generator)
+    try:
+        out = fn(batch, height, width, generator=generator)
+    except TypeError:
+        return procedural_texture(batch, height, width, generator)
+    out = torch.as_tensor(out, dtype=torch.float32).reshape(batch, 1, height, width)
+    return out.clamp(0.0, 1.0)
+
+
+def realistic_pairs(camera: Camera, batch: int, height: int, width: int, seed: int = 0,
+                    noise: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rendered DFD pairs ``(image_f1, image_f2)``, each ``(B, 1, H, W)`` float32 in [0, 1].
+
+    Each sample is a textured scene of two fronto-parallel planes (random depths in the
+    camera's working range, split at a random column) rendered with
+    :func:`tdfd.optics.render_pair` (Gaussian PSF), with Poisson-Gaussian sensor noise
+    (``var = 1e-4 x + 1e-6``) and 12-bit quantisation when ``noise`` is set. The two
+    planes are rendered separately and composited, which is not exact at the step (no
+    occlusion blur) but cheap and adequate for a parity check.
+    """
+    from tdfd.optics import render_pair
+
+    g = torch.Generator().manual_seed(int(seed))
+    sharp = _texture(batch, height, width, g)
+    near, far = camera.depth_range_m
+    d = 1.0 / (1.0 / far + torch.rand(2, batch, generator=g, dtype=torch.float64) * (1.0 / near - 1.0 / far))
+    renders = []
+    for k in range(2):
+        depth = d[k].float().reshape(batch, 1, 1, 1).expand(batch, 1, height, width).contiguous()
+        renders.append(render_pair(camera, sharp, depth))
+    split = torch.randint(width // 4, 3 * width // 4 + 1, (batch, 1, 1, 1), generator=g)
+    mask = (torch.arange(width).reshape(1, 1, 1, width) >= split).float()
+    out = []
+    for i in range(2):
+        im = renders[0][i] * (1 - mask) + renders[1][i] * mask
+        if noise:
+            std = torch.sqrt(1e-4 * im.clamp_min(0) + 1e-6)
+            im = im + std * torch.randn(im.shape, generator=g)
+            im = torch.round(im.clamp(0.0, 1.0) * 4095.0) / 4095.0
+        out.append(im.clamp(0.0, 1.0).float().contiguous())
+    return out[0], out[1]
+
+
+# -------------------------------------------------------------------------- contract
+def _dims(value_info: onnx.ValueInfoProto) -> list[int | str]:
+    return [d.dim_param if d.HasField("dim_param") else (d.dim_value if d.HasField("dim_value") else "?")
+            for d in value_info.type.tensor_type.shape.dim]
+
+
+def check_contract(proto: onnx.ModelProto, model: nn.Module | None = None) -> dict[str, object]:
+    """Check a loaded ONNX model against ``CONTRACT.md`` section 2.
+
+    Args:
+        proto: the loaded model.
+        model: the torch model it was exported from; when given, the ``tdfd.camera`` and
+            ``tdfd.grid`` metadata must equal its camera and grid.
+
+    Returns:
+        The parsed metadata ``{"tdfd.camera": dict, "tdfd.grid": dict, "tdfd.version": str, ...}``.
+
+    Raises:
+        ModelError: naming the first violation found.
+    """
+    opsets = {o.domain: o.version for o in proto.opset_import}
+    if opsets.get("", opsets.get("ai.onnx", 0)) < MIN_OPSET:
+        raise ModelError(f"opset {opsets} is below the contract's {MIN_OPSET}")
+    for init in proto.graph.initializer:
+        if init.data_location == onnx.TensorProto.EXTERNAL:
+            raise ModelError(f"initializer {init.name!r} is stored as external data; the contract needs one file")
+    names = [i.name for i in proto.graph.input]
+    if tuple(names) != INPUT_NAMES:
+        raise ModelError(f"graph inputs are {names}, expected {list(INPUT_NAMES)}")
+    outs = [o.name for o in proto.graph.output]
+    if tuple(outs) != OUTPUT_NAMES:
+        raise ModelError(f"graph outputs are {outs}, expected {list(OUTPUT_NAMES)}")
+    for kind, values in (("input", proto.graph.input), ("output", proto.graph.output)):
+        for v in values:
+            if v.type.tensor_type.elem_type != onnx.TensorProto.FLOAT:
+                raise ModelError(f"{kind} {v.name!r} has elem_type {v.type.tensor_type.elem_type}, expected float32")
+            dims = _dims(v)
+            if len(dims) != 4 or dims[1] != 1:
+                raise ModelError(f"{kind} {v.name!r} has shape {dims}, expected [N, 1, H, W]")
+            fixed = [dims[i] for i in (0, 2, 3) if not isinstance(dims[i], str)]
+            if fixed:
+                raise ModelError(f"{kind} {v.name!r} has shape {dims}: batch, height and width must be dynamic")
+    meta = {p.key: p.value for p in proto.metadata_props}
+    parsed: dict[str, object] = {}
+    for key in METADATA_KEYS:
+        if key not in meta:
+            raise ModelError(f"metadata {key!r} is missing (have {sorted(meta)})")
+        try:
+            parsed[key] = json.loads(meta[key])
+        except json.JSONDecodeError as exc:
+            raise ModelError(f"metadata {key!r} is not JSON: {exc}") from exc
+    try:
+        camera = Camera.from_dict(parsed["tdfd.camera"])  # type: ignore[arg-type]
+    except Exception as exc:
+        raise ModelError(f"metadata 'tdfd.camera' is not a valid camera: {exc}") from exc
+    grid = parsed["tdfd.grid"]
+    if not isinstance(grid, dict) or sorted(grid) != ["stride", "tile"]:
+        raise ModelError(f"metadata 'tdfd.grid' must be {{'tile', 'stride'}}, got {grid!r}")
+    if model is not None:
+        if parsed["tdfd.camera"] != model.camera.to_dict():
+            raise ModelError(f"metadata camera {parsed['tdfd.camera']} differs from the model's {model.camera.to_dict()}")
+        if (grid["tile"], grid["stride"]) != (int(model.tile), int(model.stride)):
+            raise ModelError(f"metadata grid {grid} differs from the model's tile={model.tile}, stride={model.stride}")
+    del camera
+    return parsed
+
+
+# ---------------------------------------------------------------------------- parity
+@dataclass
+class ParityCase:
+    """One parity measurement: image size, batch and the largest discrepancies."""
+
+    size: tuple[int, int]
+    batch: int
+    depth_rel: float
+    depth_analytic_rel: float
+    confidence_abs: float
+
+
+@dataclass
+class ParityReport:
+    """Result of :func:`verify_onnx`.
+
+    Attributes:
+        path: the verified file.
+        metadata: parsed ``tdfd.*`` metadata.
+        cases: one :class:`ParityCase` per (size, batch); empty when no model was given.
+        rtol, conf_atol: the tolerances applied.
+    """
+
+    path: Path
+    metadata: dict[str, object]
+    cases: list[ParityCase] = field(default_factory=list)
+    rtol: float = 1e-4
+    conf_atol: float = 1e-4
+
+    @property
+    def worst_depth_rel(self) -> float:
+        return max((max(c.depth_rel, c.depth_analytic_rel) for c in self.cases), default=0.0)
+
+    @property
+    def worst_confidence_abs(self) -> float:
+        return max((c.confidence_abs for c in self.cases), default=0.0)
+
+    def __str__(self) -> str:
+        lines = [f"{self.path}: checker OK, contract OK"]
+        for c in self.cases:
+            lines.append(f"  {c.size[0]}x{c.size[1]} batch {c.batch}: depth rel {c.depth_rel:.2e}, "
+                         f"depth_analytic rel {c.depth_analytic_rel:.2e}, confidence abs {c.confidence_abs:.2e}")
+        if self.cases:
+            lines.append(f"  parity OK (rtol {self.rtol:g}, confidence atol {self.conf_atol:g})")
+        return "\n".join(lines)
+
+
+def _session(path: Path, threads: int):
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = int(threads)
+    so.inter_op_num_threads = 1
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    try:
+        return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    except Exception as exc:
+        raise ModelError(f"onnxruntime cannot load {path}: {exc}") from exc
+
+
+def verify_onnx(path: str | Path, model: nn.Module | None = None,
+                sizes: Sequence[tuple[int, int]] = DEFAULT_SIZES, batches: Sequence[int] = DEFAULT_BATCHES,
+                rtol: float = 1e-4, conf_atol: float = 1e-4, threads: int = 2, seed: int = 0) -> ParityReport:
+    """Check an exported file and its agreement with the torch model.
+
+    Args:
+        path: the ``.onnx`` file.
+        model: the torch model it was exported from (parity and metadata equality are
+            checked only when given).
+        sizes: image sizes ``(H, W)``, each at least one tile.
+        batches: batch sizes.
+        rtol: largest relative difference allowed on ``depth`` and ``depth_analytic``.
+        conf_atol: largest absolute difference allowed on ``confidence``.
+        threads: ONNX Runtime intra-op threads.
+        seed: seed of the rendered scenes.
+
+    Returns:
+        A :class:`ParityReport`.
+
+    Raises:
+        ModelError: the file is missing or unreadable, fails the checker or the contract,
+            or disagrees with the model (the worst discrepancy is in the message).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"ONNX file {path} does not exist")
+    try:
+        proto = onnx.load(str(path))
+    except Exception as exc:
+        raise ModelError(f"cannot load {path}: {exc}") from exc
+    try:
+        onnx.checker.check_model(proto, full_check=True)
+    except (onnx.checker.ValidationError, onnx.shape_inference.InferenceError) as exc:
+        raise ModelError(f"{path} fails onnx.checker (full check): {exc}") from exc
+    metadata = check_contract(proto, model)
+    report = ParityReport(path=path, metadata=metadata, rtol=rtol, conf_atol=conf_atol)
+    if model is None:
+        return report
+    sess = _session(path, threads)
+    worst: tuple[float, str] = (-1.0, "")
+    failed = False
+    with _export_mode(model), torch.no_grad():
+        for h, w in sizes:
+            for b in batches:
+                i1, i2 = realistic_pairs(model.camera, b, h, w, seed=seed + 7919 * h + w + 104729 * b)
+                ref = [t.detach().cpu().numpy() for t in model(i1, i2)]
+                got = sess.run(list(OUTPUT_NAMES), {INPUT_NAMES[0]: i1.numpy(), INPUT_NAMES[1]: i2.numpy()})
+                expect_shape = (b, 1, *grid_shape(h, w, int(model.tile), int(model.stride)))
+                errs = {}
+                for name, r, o in zip(OUTPUT_NAMES, ref, got):
+                    if tuple(o.shape) != expect_shape or tuple(r.shape) != expect_shape:
+                        raise ModelError(f"{name} for {b}x1x{h}x{w} has shape ONNX {tuple(o.shape)} / torch "
+                                         f"{tuple(r.shape)}, expected {expect_shape}")
+                    if not np.isfinite(o).all():
+                        raise ModelError(f"ONNX {name} for {b}x1x{h}x{w} contains NaN or inf")
+                    if name == "confidence":
+                        e = np.abs(o.astype(np.float64) - r)
+                        tol = conf_atol
+                    else:
+                        e = np.abs(o.astype(np.float64) - r) / np.maximum(np.abs(r.astype(np.float64)), 1e-12)
+                        tol = rtol
+                    errs[name] = float(e.max())
+                    idx = np.unravel_index(int(np.argmax(e)), e.shape)
+                    ratio = errs[name] / tol
+                    if ratio > worst[0]:
+                        worst = (ratio, f"{name} at {b}x1x{h}x{w}, tile {tuple(int(i) for i in idx)}: ONNX "
+                                        f"{float(o[idx]):.7g} vs torch {float(r[idx]):.7g} "
+                                        f"({'abs' if name == 'confidence' else 'rel'} {errs[name]:.3g} > {tol:g})")
+                    failed |= errs[name] > tol
+                report.cases.append(ParityCase((h, w), b, errs["depth"], errs["depth_analytic"], errs["confidence"]))
+                logger.info("parity %dx%d batch %d: %s", h, w, b, errs)
+    if failed:
+        raise ModelError(f"ONNX Runtime disagrees with torch for {path}: worst {worst[1]}")
+    return report

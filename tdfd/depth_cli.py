@@ -1,0 +1,229 @@
+r"""``tdfd depth``: depth from a DFD pair of image files with the exported ONNX model.
+
+::
+
+    tdfd depth IMAGE_F1 IMAGE_F2 [--model M] [-o depth.npy|.tiff|.png] [--white-level L]
+               [--full-resolution] [--threshold C] [--centre FRACTION] [--threads T]
+
+Reads single-channel 8- or 16-bit PNG/TIFF frames (or float32 TIFF in [0, 1]) with OpenCV
+(``IMREAD_UNCHANGED``), runs :class:`tdfd.runtime.DepthRuntime` (no torch), prints a
+summary (median depth of the confident cells in the centre region, valid fraction, the
+in-focus ECVFL power for that depth) and, with ``-o``, writes:
+
+* the depth map: ``.npy`` float32 metres, ``.tif``/``.tiff`` float32 metres, or ``.png``
+  uint16 millimetres (0 where the confidence is below the threshold); on the tile grid,
+  or at image resolution with ``--full-resolution``;
+* ``<stem>_color.png``: the depth at image resolution in a fixed colour scale over the
+  camera's working range (turbo colour map, near = red, far = blue), low-confidence
+  regions greyed, with a labelled scale bar in metres.
+
+Colour (3- or 4-channel) files are rejected: DFD needs the raw single-channel sensor
+frames (convert a colour image yourself if you must; gamma-encoded JPEG-like data is not
+linear intensity). Both files must have the same size and the same pixel type. Errors are
+one line, ``tdfd depth: error: ...``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+from .errors import DTypeError, InputError, ShapeError
+
+__all__ = ["register", "read_frame", "write_depth", "colorize_depth", "run"]
+
+logger = logging.getLogger(__name__)
+
+_DEPTH_SUFFIXES = (".npy", ".tif", ".tiff", ".png")
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``depth`` subcommand to ``tdfd``'s parser."""
+    p = subparsers.add_parser(
+        "depth", help="depth map from a DFD image pair (ONNX Runtime)",
+        description="Estimate depth from two frames taken at the camera's two ECVFL powers, with the exported "
+                    "ONNX model. Frames: single-channel 8/16-bit PNG or TIFF (or float32 TIFF in [0, 1]).")
+    p.add_argument("image_f1", help="frame at the first ECVFL power (PNG/TIFF)")
+    p.add_argument("image_f2", help="frame at the second ECVFL power (PNG/TIFF)")
+    p.add_argument("--model", default=None,
+                   help="ONNX model (default: $TDFD_MODEL, else models/reference.onnx of the tdfd checkout)")
+    p.add_argument("-o", "--output", default=None,
+                   help="depth map to write: .npy / .tif(f) float32 metres, .png uint16 millimetres; "
+                        "also writes <stem>_color.png")
+    p.add_argument("--white-level", type=float, default=None,
+                   help="raw value of full scale (default 255 for 8-bit, 65535 for 16-bit; e.g. 4095 for 12-bit data)")
+    p.add_argument("--full-resolution", action="store_true", help="write the depth map at image resolution")
+    p.add_argument("--threshold", type=float, default=0.5, help="confidence at which a cell counts as valid (default 0.5)")
+    p.add_argument("--centre", type=float, default=0.5,
+                   help="fraction of the image height and width forming the centre region (default 0.5)")
+    p.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads (default 2)")
+    p.set_defaults(func=run)
+
+
+def read_frame(path: str | Path) -> Any:
+    """Read a single-channel frame with OpenCV, unchanged (uint8, uint16 or float32).
+
+    Raises:
+        InputError: missing or unreadable file.
+        ShapeError: a colour (multi-channel) image.
+        DTypeError: a pixel type other than 8/16-bit unsigned or 32-bit float.
+    """
+    import cv2
+    import numpy as np
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"cannot read {p}: no such file")
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(f"cannot read {p}: not an image OpenCV can decode")
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[..., 0]
+    if img.ndim != 2:
+        raise ShapeError(f"{p} has {img.shape[2]} channels; DFD needs single-channel (raw or greyscale) frames")
+    if img.dtype not in (np.uint8, np.uint16, np.float32):
+        raise DTypeError(f"{p} has {img.dtype} pixels; expected 8- or 16-bit unsigned integers (or float32 in [0, 1])")
+    return img
+
+
+def colorize_depth(depth: Any, confidence: Any, depth_range: tuple[float, float], threshold: float = 0.5,
+                   min_width: int = 480) -> Any:
+    """A BGR uint8 picture of a depth map with a labelled scale bar in metres.
+
+    Args:
+        depth: ``(H, W)`` depth in metres.
+        confidence: ``(H, W)`` confidence in [0, 1].
+        depth_range: ``(near, far)`` of the colour scale in metres (near = red, far = blue).
+        threshold: pixels below this confidence are shown greyed.
+        min_width: the picture is upscaled (nearest) to at least this width.
+
+    Returns:
+        ``(H' + bar, W', 3)`` uint8 BGR image.
+    """
+    import cv2
+    import numpy as np
+
+    near, far = float(depth_range[0]), float(depth_range[1])
+    inv = 1.0 / np.asarray(depth, dtype=np.float64)
+    # colour linear in inverse depth (like the blur); near -> 255 (red in turbo)
+    t = np.clip((inv - 1.0 / far) / (1.0 / near - 1.0 / far), 0.0, 1.0)
+    img = cv2.applyColorMap(np.round(t * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    low = np.asarray(confidence) < threshold
+    if low.any():
+        grey = np.full_like(img, 96)
+        img[low] = (0.35 * img[low] + 0.65 * grey[low]).astype(np.uint8)
+    scale = max(1, int(math.ceil(min_width / img.shape[1])))
+    if scale > 1:
+        img = cv2.resize(img, (img.shape[1] * scale, img.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
+    width = img.shape[1]
+    bar_h, pad = 60, 20
+    bar = np.full((bar_h, width, 3), 255, np.uint8)
+    x0, x1 = pad, width - pad
+    ramp = np.linspace(1.0, 0.0, x1 - x0)  # left = near ... right = far, in inverse depth
+    colours = cv2.applyColorMap(np.round(ramp * 255).astype(np.uint8)[None, :], cv2.COLORMAP_TURBO)
+    bar[8:24, x0:x1] = colours
+    cv2.rectangle(bar, (x0, 8), (x1 - 1, 23), (0, 0, 0), 1)
+    ticks = _nice_ticks(near, far)
+    for d in ticks:
+        u = (1.0 / near - 1.0 / d) / (1.0 / near - 1.0 / far)
+        x = int(round(x0 + u * (x1 - x0 - 1)))
+        cv2.line(bar, (x, 24), (x, 30), (0, 0, 0), 1)
+        label = f"{d:g}"
+        (tw, _), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.4, 1)
+        cv2.putText(bar, label, (min(max(x - tw // 2, 0), width - tw), 44), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(bar, "depth [m] (grey: low confidence)", (x0, 57), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1,
+                cv2.LINE_AA)
+    return np.concatenate([img, bar], 0)
+
+
+def _nice_ticks(near: float, far: float) -> list[float]:
+    span = far - near
+    for step in (0.05, 0.1, 0.2, 0.25, 0.5, 1.0, 2.0, 5.0):
+        if span / step <= 8:
+            break
+    first = math.ceil(near / step - 1e-9) * step
+    ticks = [round(first + k * step, 6) for k in range(int((far - first) / step + 1e-9) + 1)]
+    return [t for t in ticks if near - 1e-9 <= t <= far + 1e-9] or [near, far]
+
+
+def write_depth(path: str | Path, depth: Any, confidence: Any, threshold: float = 0.5) -> Path:
+    """Write a depth map in metres: ``.npy``/``.tif(f)`` float32 metres, ``.png`` uint16 mm.
+
+    In the PNG, cells below ``threshold`` confidence are 0 (no depth) and depths are
+    clipped to 65.535 m.
+
+    Raises:
+        InputError: an unsupported suffix or a failed write.
+    """
+    import cv2
+    import numpy as np
+
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix not in _DEPTH_SUFFIXES:
+        raise InputError(f"output {p} must end in one of {', '.join(_DEPTH_SUFFIXES)}")
+    p.parent.mkdir(parents=True, exist_ok=True)
+    d = np.asarray(depth, dtype=np.float32)
+    if suffix == ".npy":
+        np.save(p, d)
+        return p
+    if suffix == ".png":
+        mm = np.clip(np.round(d * 1000.0), 0, 65535).astype(np.uint16)
+        mm[np.asarray(confidence) < threshold] = 0
+        ok = cv2.imwrite(str(p), mm)
+    else:
+        ok = cv2.imwrite(str(p), d)
+    if not ok:
+        raise InputError(f"cannot write {p}")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Body of ``tdfd depth`` (see the module docstring)."""
+    import cv2
+    import numpy as np
+
+    from .runtime import DepthRuntime, default_model_path
+
+    if args.output is not None and Path(args.output).suffix.lower() not in _DEPTH_SUFFIXES:
+        raise InputError(f"output {args.output} must end in one of {', '.join(_DEPTH_SUFFIXES)}")
+    if not 0.0 <= args.threshold <= 1.0:
+        raise InputError(f"--threshold must be in [0, 1], got {args.threshold}")
+    if not 0.0 < args.centre <= 1.0:
+        raise InputError(f"--centre must be in (0, 1], got {args.centre}")
+    f1, f2 = read_frame(args.image_f1), read_frame(args.image_f2)
+    if f1.shape != f2.shape:
+        raise ShapeError(f"{args.image_f1} is {f1.shape[0]}x{f1.shape[1]} but {args.image_f2} is "
+                         f"{f2.shape[0]}x{f2.shape[1]}; the frames must have the same size")
+    if f1.dtype != f2.dtype:
+        raise DTypeError(f"{args.image_f1} has {f1.dtype} pixels but {args.image_f2} has {f2.dtype}")
+    model = Path(args.model) if args.model else default_model_path()
+    rt = DepthRuntime(model, threads=args.threads)
+    res = rt(f1, f2, white_level=args.white_level)
+    h, w = res.depth.shape
+    valid = res.valid(args.threshold)
+    centre = res.centre_depth(args.centre, args.threshold)
+    print(f"{args.image_f1}, {args.image_f2}: {f1.shape[0]}x{f1.shape[1]} {f1.dtype}, {h}x{w} tiles "
+          f"({rt.tile} px, stride {rt.stride}), model {model.name}")
+    if math.isfinite(centre):
+        print(f"centre depth: {centre:.4f} m (median of confident cells in the central {args.centre:.0%}); "
+              f"in-focus ECVFL power {rt.in_focus_power_dpt(centre):+.3f} dpt")
+    else:
+        print(f"centre depth: none (no cell in the central {args.centre:.0%} reaches confidence {args.threshold:g})")
+    print(f"valid: {valid.mean():.1%} of {valid.size} cells (confidence >= {args.threshold:g}); "
+          f"depth {np.nanmin(res.depth):.3f}-{np.nanmax(res.depth):.3f} m")
+    if args.output:
+        full = res.at_full_resolution()
+        out = full if args.full_resolution else res
+        path = write_depth(args.output, out.depth, out.confidence, args.threshold)
+        picture = colorize_depth(full.depth, full.confidence, rt.camera.depth_range_m, args.threshold)
+        pic = path.with_name(path.stem + "_color.png")
+        if not cv2.imwrite(str(pic), picture):
+            raise InputError(f"cannot write {pic}")
+        print(f"wrote {path} ({'x'.join(map(str, out.depth.shape))} "
+              f"{'uint16 mm' if path.suffix.lower() == '.png' else 'float32 m'}) and {pic}")
+    return 0

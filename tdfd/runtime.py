@@ -1,0 +1,404 @@
+r"""Depth from defocus on the device: an ONNX Runtime session around the exported model.
+
+Needs only numpy and onnxruntime (no torch): a device ships this module, ``tdfd/camera.py``,
+``tdfd/errors.py`` and one ``.onnx`` file (``CONTRACT.md`` section 2). The camera and the
+tile grid are read from the file's metadata.
+
+Inputs are validated before they reach the session, with typed errors
+(:mod:`tdfd.errors`): ``float16/32/64`` arrays must hold linear intensity in ``[0, 1]``;
+``uint8``/``uint16`` arrays are divided by a white level (default ``255``/``65535``, so pass
+``white_level=4095`` for 12-bit data stored in 16-bit words). Arrays may be ``(H, W)``,
+``(1, H, W)`` or ``(N, 1, H, W)``; results keep that layout.
+
+Full-resolution resampling (``full_resolution=True``) interpolates the tile grid
+bilinearly with each tile's value placed at its centre, pixel
+``(i * stride + (tile - 1) / 2, j * stride + (tile - 1) / 2)``; pixels outside the outermost
+centres take the nearest centre's value (edge extension). Depth is interpolated in inverse
+depth (blur is linear in it), confidence linearly.
+
+Example:
+    >>> import numpy as np
+    >>> rt = DepthRuntime(default_model_path())  # doctest: +SKIP
+    >>> res = rt(frame_f1, frame_f2)  # uint16 (1200, 1600) frames  # doctest: +SKIP
+    >>> res.depth.shape, res.centre_depth()  # doctest: +SKIP
+    ((36, 49), 0.52)
+    >>> rt.in_focus_power_dpt(res.centre_depth())  # ECVFL command in dioptres  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from .camera import Camera
+from .errors import DTypeError, InputError, ModelError, NonFiniteError, RangeError, ShapeError
+
+__all__ = [
+    "DepthRuntime",
+    "DepthResult",
+    "default_model_path",
+    "tile_centres",
+    "resample_to_image",
+    "in_focus_power_dpt",
+    "DEFAULT_MODEL_ENV",
+    "INPUT_NAMES",
+    "OUTPUT_NAMES",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Environment variable naming the default model file.
+DEFAULT_MODEL_ENV = "TDFD_MODEL"
+#: Model inputs and outputs (``CONTRACT.md`` section 2).
+INPUT_NAMES = ("image_f1", "image_f2")
+OUTPUT_NAMES = ("depth", "confidence", "depth_analytic")
+_FLOAT_TOLERANCE = 1e-6  # float inputs may exceed [0, 1] by rounding only
+
+
+def default_model_path() -> Path:
+    """The model used when none is given.
+
+    Looked up in order: ``$TDFD_MODEL``; ``models/reference.onnx`` next to the package
+    (``<repo>/models`` for a source checkout or editable install); ``models/reference.onnx``
+    in the working directory.
+
+    Raises:
+        ModelError: none of them exists (the message lists where it looked).
+    """
+    env = os.environ.get(DEFAULT_MODEL_ENV)
+    if env:
+        p = Path(env).expanduser()
+        if not p.is_file():
+            raise ModelError(f"${DEFAULT_MODEL_ENV} names {p}, which does not exist")
+        return p
+    candidates = [Path(__file__).resolve().parents[1] / "models" / "reference.onnx",
+                  Path.cwd() / "models" / "reference.onnx"]
+    for p in candidates:
+        if p.is_file():
+            return p
+    raise ModelError("no model found: pass --model/model_path or set $TDFD_MODEL (looked for "
+                     + ", ".join(str(c) for c in candidates) + ")")
+
+
+def in_focus_power_dpt(camera: Camera, depth_m: float | np.ndarray) -> float | np.ndarray:
+    """ECVFL power (dioptres) that focuses an object at ``depth_m`` metres.
+
+    ``P_e = 1/d_o + 1/d_s - 1/f0`` (``CONTRACT.md`` section 1), element-wise for arrays.
+
+    Raises:
+        RangeError: a depth that is not finite and positive.
+    """
+    d = np.asarray(depth_m, dtype=np.float64)
+    if not np.all(np.isfinite(d)) or np.any(d <= 0):
+        raise RangeError(f"depth must be finite and > 0 metres, got {depth_m!r}")
+    p = 1.0 / d + 1.0 / camera.sensor_distance_m - 1.0 / camera.fixed_focal_length_m
+    return float(p) if p.ndim == 0 else p
+
+
+def tile_centres(height: int, width: int, tile: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (rows, columns) of the tile centres of an ``height`` x ``width`` image."""
+    h, w = (height - tile) // stride + 1, (width - tile) // stride + 1
+    return np.arange(h) * stride + (tile - 1) / 2.0, np.arange(w) * stride + (tile - 1) / 2.0
+
+
+def _interp_weights(n_out: int, n_grid: int, tile: int, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    u = (np.arange(n_out, dtype=np.float64) - (tile - 1) / 2.0) / stride
+    u = np.clip(u, 0.0, n_grid - 1)
+    i0 = np.minimum(np.floor(u).astype(np.intp), max(n_grid - 2, 0))
+    i1 = np.minimum(i0 + 1, n_grid - 1)
+    return i0, i1, (u - i0)
+
+
+def resample_to_image(grid: np.ndarray, height: int, width: int, tile: int, stride: int) -> np.ndarray:
+    """Bilinear, tile-centre-aligned resampling of ``(..., h, w)`` maps to ``(..., H, W)``.
+
+    Cell ``(i, j)`` sits at pixel ``(i * stride + (tile - 1) / 2, j * stride + (tile - 1) / 2)``;
+    beyond the outermost centres the edge values extend (no extrapolation).
+    """
+    g = np.asarray(grid, dtype=np.float64)
+    h, w = g.shape[-2:]
+    r0, r1, fr = _interp_weights(height, h, tile, stride)
+    c0, c1, fc = _interp_weights(width, w, tile, stride)
+    rows = g[..., r0, :] * (1.0 - fr)[:, None] + g[..., r1, :] * fr[:, None]  # (..., H, w)
+    out = rows[..., c0] * (1.0 - fc) + rows[..., c1] * fc
+    return out.astype(np.float32)
+
+
+@dataclass
+class DepthResult:
+    """Output of :class:`DepthRuntime`.
+
+    Arrays follow the input layout: ``(h, w)`` for ``(H, W)`` input, ``(1, h, w)`` for
+    ``(1, H, W)``, ``(N, 1, h, w)`` for ``(N, 1, H, W)``; with ``full_resolution`` the last two
+    axes are ``(H, W)`` instead of the tile grid.
+
+    Attributes:
+        depth: refined object distance in metres, float32.
+        confidence: in [0, 1], float32.
+        depth_analytic: analytic Fourier-ratio depth in metres, float32.
+        image_size: ``(H, W)`` of the input frames in pixels.
+        tile, stride: the tile grid in pixels.
+        full_resolution: whether the maps were resampled to ``(H, W)``.
+    """
+
+    depth: np.ndarray
+    confidence: np.ndarray
+    depth_analytic: np.ndarray
+    image_size: tuple[int, int]
+    tile: int
+    stride: int
+    full_resolution: bool = False
+
+    @property
+    def grid_shape(self) -> tuple[int, int]:
+        """Tile-grid shape ``(h, w)`` of the input image size."""
+        H, W = self.image_size
+        return (H - self.tile) // self.stride + 1, (W - self.tile) // self.stride + 1
+
+    def valid(self, threshold: float = 0.5) -> np.ndarray:
+        """Boolean mask of cells (or pixels) whose confidence is at least ``threshold``."""
+        return self.confidence >= threshold
+
+    def valid_fraction(self, threshold: float = 0.5) -> float:
+        """Fraction of cells (or pixels) whose confidence is at least ``threshold``."""
+        return float(np.mean(self.valid(threshold)))
+
+    def _centre_mask(self, fraction: float) -> np.ndarray:
+        H, W = self.image_size
+        if self.full_resolution:
+            ys, xs = np.arange(H) + 0.5, np.arange(W) + 0.5
+        else:
+            ys, xs = tile_centres(H, W, self.tile, self.stride)
+            ys, xs = ys + 0.5, xs + 0.5
+        iny = np.abs(ys - H / 2.0) <= fraction * H / 2.0
+        inx = np.abs(xs - W / 2.0) <= fraction * W / 2.0
+        if not iny.any():  # always keep the middle row / column
+            iny[np.argmin(np.abs(ys - H / 2.0))] = True
+        if not inx.any():
+            inx[np.argmin(np.abs(xs - W / 2.0))] = True
+        return iny[:, None] & inx[None, :]
+
+    def at_full_resolution(self) -> "DepthResult":
+        """This result resampled to the image size (see the module notes on alignment)."""
+        if self.full_resolution:
+            return self
+        H, W = self.image_size
+        up = lambda x: resample_to_image(x, H, W, self.tile, self.stride)  # noqa: E731
+        return DepthResult(depth=1.0 / up(1.0 / self.depth), confidence=up(self.confidence),
+                           depth_analytic=1.0 / up(1.0 / self.depth_analytic), image_size=self.image_size,
+                           tile=self.tile, stride=self.stride, full_resolution=True)
+
+    def centre_depth(self, fraction: float = 0.5, threshold: float = 0.5) -> float | np.ndarray:
+        """Median depth (metres) of the confident cells in the centre region.
+
+        The centre region holds the cells (or pixels) whose centres lie in the middle
+        ``fraction`` of the image height and width (at least the middle row and column).
+
+        Returns:
+            A float for a single image, else an ``(N,)`` array; ``nan`` where no cell of the
+            centre region reaches ``threshold``.
+        """
+        if not 0 < fraction <= 1:
+            raise InputError(f"fraction must be in (0, 1], got {fraction}")
+        mask = self._centre_mask(fraction)
+        d = self.depth.reshape(-1, *self.depth.shape[-2:])
+        c = self.confidence.reshape(-1, *self.confidence.shape[-2:])
+        out = np.array([float(np.median(di[mask & (ci >= threshold)])) if np.any(mask & (ci >= threshold))
+                        else math.nan for di, ci in zip(d, c)])
+        return float(out[0]) if self.depth.ndim <= 3 and out.size == 1 else out
+
+
+def _as_images(name: str, image: Any, white_level: float | None) -> tuple[np.ndarray, tuple[int, ...]]:
+    """Validate one input and return it as float32 ``(N, 1, H, W)`` plus its original shape."""
+    if not isinstance(image, np.ndarray):
+        raise DTypeError(f"{name} must be a numpy array, got {type(image).__name__}")
+    shape = image.shape
+    if image.ndim == 2:
+        arr = image[None, None]
+    elif image.ndim == 3 and shape[0] == 1:
+        arr = image[None]
+    elif image.ndim == 4 and shape[1] == 1:
+        arr = image
+    else:
+        raise ShapeError(f"{name} must be (H, W), (1, H, W) or (N, 1, H, W) single-channel, got shape {shape}")
+    if arr.shape[0] == 0:
+        raise ShapeError(f"{name} is empty (shape {shape})")
+    dt = image.dtype
+    if dt in (np.uint8, np.uint16):
+        level = float(np.iinfo(dt).max) if white_level is None else float(white_level)
+        if not math.isfinite(level) or level <= 0:
+            raise RangeError(f"white_level must be finite and > 0, got {white_level!r}")
+        hi = int(arr.max())
+        if hi > level:
+            raise RangeError(f"{name} has values up to {hi}, above the white level {level:g}")
+        return (arr.astype(np.float32) / np.float32(level)), shape
+    if dt in (np.float16, np.float32, np.float64):
+        out = arr.astype(np.float32, copy=False)
+        if white_level is not None:
+            level = float(white_level)
+            if not math.isfinite(level) or level <= 0:
+                raise RangeError(f"white_level must be finite and > 0, got {white_level!r}")
+            out = out / np.float32(level)
+        if not np.isfinite(out).all():
+            raise NonFiniteError(f"{name} contains NaN or inf")
+        lo, hi = float(out.min()), float(out.max())
+        if lo < -_FLOAT_TOLERANCE or hi > 1.0 + _FLOAT_TOLERANCE:
+            raise RangeError(f"{name} has values in [{lo:.4g}, {hi:.4g}]; float images must be linear intensity "
+                             f"in [0, 1] (divide raw values by the white level)")
+        return np.clip(out, 0.0, 1.0), shape
+    raise DTypeError(f"{name} has dtype {dt}; expected uint8, uint16 (scaled by the white level) or float in [0, 1]")
+
+
+class DepthRuntime:
+    """Run an exported tdfd model with ONNX Runtime (CPU by default, no torch).
+
+    Args:
+        model_path: the ``.onnx`` file; ``None`` takes :func:`default_model_path`.
+        threads: intra-op threads of the session.
+        providers: ONNX Runtime execution providers (default CPU).
+        optimization: ONNX Runtime graph optimisation level: ``"all"``, ``"extended"``,
+            ``"basic"`` or ``"disable"``.
+
+    Raises:
+        ModelError: a missing, unreadable or non-conforming file (wrong inputs/outputs,
+            missing or invalid ``tdfd.*`` metadata).
+
+    Attributes:
+        camera: :class:`tdfd.Camera` rebuilt from the ``tdfd.camera`` metadata.
+        tile, stride: the tile grid (``tdfd.grid``).
+        version: the tdfd version that exported the file.
+        metadata: all ``metadata_props``, JSON-decoded where possible.
+    """
+
+    def __init__(self, model_path: str | os.PathLike | None = None, threads: int = 2,
+                 providers: Sequence[str] | None = None, optimization: str = "extended") -> None:
+        import onnxruntime as ort
+
+        path = default_model_path() if model_path is None else Path(model_path)
+        if not path.is_file():
+            raise ModelError(f"model file {path} does not exist")
+        if int(threads) < 1:
+            raise InputError(f"threads must be >= 1, got {threads}")
+        levels = {"all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+                  "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+                  "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+                  "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL}
+        if optimization not in levels:
+            raise InputError(f"optimization must be one of {sorted(levels)}, got {optimization!r}")
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = int(threads)
+        so.inter_op_num_threads = 1
+        so.graph_optimization_level = levels[optimization]
+        self.path = path
+        self.threads = int(threads)
+        try:
+            self.session = ort.InferenceSession(str(path), so, providers=list(providers or ["CPUExecutionProvider"]))
+        except Exception as exc:  # onnxruntime raises its own exception types
+            raise ModelError(f"onnxruntime cannot load {path}: {str(exc).splitlines()[0] if str(exc) else exc!r}") from exc
+        inputs = [i.name for i in self.session.get_inputs()]
+        outputs = [o.name for o in self.session.get_outputs()]
+        if tuple(inputs) != INPUT_NAMES or tuple(outputs) != OUTPUT_NAMES:
+            raise ModelError(f"{path} has inputs {inputs} and outputs {outputs}; expected {list(INPUT_NAMES)} and "
+                             f"{list(OUTPUT_NAMES)}")
+        raw = self.session.get_modelmeta().custom_metadata_map
+        self.metadata: dict[str, Any] = {}
+        for key, value in raw.items():
+            try:
+                self.metadata[key] = json.loads(value)
+            except (json.JSONDecodeError, TypeError):
+                self.metadata[key] = value
+        for key in ("tdfd.camera", "tdfd.grid", "tdfd.version"):
+            if key not in self.metadata:
+                raise ModelError(f"{path} lacks the {key!r} metadata; export it with `python -m export`")
+        try:
+            self.camera = Camera.from_dict(self.metadata["tdfd.camera"], name=path.stem)
+        except Exception as exc:
+            raise ModelError(f"{path}: invalid 'tdfd.camera' metadata: {exc}") from exc
+        grid = self.metadata["tdfd.grid"]
+        try:
+            self.tile, self.stride = int(grid["tile"]), int(grid["stride"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelError(f"{path}: invalid 'tdfd.grid' metadata {grid!r}") from exc
+        if self.tile < 1 or not 1 <= self.stride <= self.tile:
+            raise ModelError(f"{path}: invalid tile grid tile={self.tile}, stride={self.stride}")
+        self.version = str(self.metadata["tdfd.version"])
+
+    def __repr__(self) -> str:
+        return f"DepthRuntime({str(self.path)!r}, tile={self.tile}, stride={self.stride}, threads={self.threads})"
+
+    def grid_shape(self, height: int, width: int) -> tuple[int, int]:
+        """Tile-grid shape ``(h, w)`` for a ``height`` x ``width`` image."""
+        if height < self.tile or width < self.tile:
+            raise ShapeError(f"image {height}x{width} is smaller than one {self.tile}x{self.tile} tile")
+        return (height - self.tile) // self.stride + 1, (width - self.tile) // self.stride + 1
+
+    def prepare(self, image_f1: np.ndarray, image_f2: np.ndarray,
+                white_level: float | None = None) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:
+        """Validate a pair and return float32 ``(N, 1, H, W)`` arrays in [0, 1] and the input shape.
+
+        Raises:
+            DTypeError: not a numpy array, unsupported dtype, or the two dtypes differ.
+            ShapeError: not single-channel ``(H, W)``/``(1, H, W)``/``(N, 1, H, W)``, shapes
+                differ, or smaller than one tile.
+            NonFiniteError: NaN or inf.
+            RangeError: float values outside [0, 1], integer values above the white level, or
+                a non-positive white level.
+        """
+        for name, im in (("image_f1", image_f1), ("image_f2", image_f2)):
+            if not isinstance(im, np.ndarray):
+                raise DTypeError(f"{name} must be a numpy array, got {type(im).__name__}")
+        if image_f1.dtype != image_f2.dtype:
+            raise DTypeError(f"image_f1 is {image_f1.dtype} but image_f2 is {image_f2.dtype}; both frames must have one dtype")
+        if image_f1.shape != image_f2.shape:
+            raise ShapeError(f"image_f1 {image_f1.shape} and image_f2 {image_f2.shape} differ in shape")
+        a, shape = _as_images("image_f1", image_f1, white_level)
+        b, _ = _as_images("image_f2", image_f2, white_level)
+        self.grid_shape(a.shape[-2], a.shape[-1])
+        return np.ascontiguousarray(a), np.ascontiguousarray(b), shape
+
+    def run(self, image_f1: np.ndarray, image_f2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The bare session call on float32 ``(N, 1, H, W)`` arrays (no validation)."""
+        return tuple(self.session.run(list(OUTPUT_NAMES), {INPUT_NAMES[0]: image_f1, INPUT_NAMES[1]: image_f2}))  # type: ignore[return-value]
+
+    def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray, white_level: float | None = None,
+                 full_resolution: bool = False) -> DepthResult:
+        """Depth, confidence and analytic depth for a DFD pair.
+
+        Args:
+            image_f1: frame at the first ECVFL power: ``(H, W)``, ``(1, H, W)`` or
+                ``(N, 1, H, W)``; float in [0, 1], or uint8/uint16.
+            image_f2: frame at the second power, same shape and dtype.
+            white_level: raw value of full scale; integer frames default to the dtype's
+                maximum, float frames to 1.
+            full_resolution: resample the maps to ``(H, W)`` (see the module notes).
+
+        Returns:
+            A :class:`DepthResult` in the input's layout.
+
+        Raises:
+            DTypeError, ShapeError, NonFiniteError, RangeError: see :meth:`prepare`.
+        """
+        a, b, shape = self.prepare(image_f1, image_f2, white_level)
+        depth, conf, depth_a = self.run(a, b)
+        H, W = a.shape[-2:]
+        lead = {2: 0, 3: 1, 4: 2}[len(shape)]  # leading axes to keep: (H, W) -> none, (1, H, W) -> one
+
+        def fmt(x: np.ndarray) -> np.ndarray:
+            x = np.asarray(x, dtype=np.float32)
+            return x[0, 0] if lead == 0 else (x[0] if lead == 1 else x)
+
+        res = DepthResult(depth=fmt(depth), confidence=fmt(conf), depth_analytic=fmt(depth_a),
+                          image_size=(int(H), int(W)), tile=self.tile, stride=self.stride)
+        return res.at_full_resolution() if full_resolution else res
+
+    def in_focus_power_dpt(self, depth_m: float | np.ndarray) -> float | np.ndarray:
+        """ECVFL power (dioptres) focusing an object at ``depth_m``: ``1/d + 1/d_s - 1/f0``,
+        with the camera from the model metadata."""
+        return in_focus_power_dpt(self.camera, depth_m)
