@@ -77,6 +77,7 @@ __all__ = [
     "TrialRecord",
     "SimBench",
     "trial_depths",
+    "command_lens",
     "DEFAULT_READOUT_HW",
     "BENCH_TEXTURE_FAMILIES",
     "BENCH_TEMPERATURE_LIMITS_C",
@@ -474,6 +475,39 @@ class _TimedPort:
         self._port.close()
 
 
+def command_lens(lens: Any, power_dpt: float, verify: bool = True, clock: Callable[[], float] = time.monotonic,
+                 tolerance_dpt: float = 0.006) -> float:
+    """Set ``lens`` to ``power_dpt`` and (``verify``) read the set-point back, re-sending once on a mismatch.
+
+    ``PwDA`` has no reply, so a command lost on the wire is only seen by reading the
+    set-point back (``PrDA``).
+
+    Args:
+        lens: an :class:`~tdfd.driver.OptotuneLens` in focal-power mode.
+        power_dpt: the set-point (dpt).
+        verify: read the set-point back.
+        clock: time source; its reading right after the command is returned.
+        tolerance_dpt: accepted read-back difference (one raw step is 0.005 dpt).
+
+    Returns:
+        The time the command was written (after its bytes), by ``clock`` (s).
+
+    Raises:
+        DriverError: the driver failed (after its own retries), or the read-back disagrees twice.
+    """
+    got = math.nan
+    for attempt in range(2):
+        lens.set_focal_power_dpt(power_dpt)
+        arrived = clock()
+        if not verify:
+            return arrived
+        got = lens.get_focal_power_dpt()
+        if abs(got - power_dpt) <= tolerance_dpt:
+            return arrived
+        log.warning("lens set-point read back %.3f dpt, expected %.3f dpt (attempt %d)", got, power_dpt, attempt + 1)
+    raise DriverError(f"lens set-point reads back {got:.3f} dpt instead of {power_dpt:.3f} dpt")
+
+
 class EmulatedLens:
     """The lens emulator on a pty, opened through the real :class:`~tdfd.driver.OptotuneLens`.
 
@@ -528,16 +562,7 @@ class EmulatedLens:
         Raises:
             DriverError: the driver failed (after its retries), or the read-back disagrees twice.
         """
-        for attempt in range(2):
-            self.lens.set_focal_power_dpt(power_dpt)
-            arrived = self.clock.now()
-            if not verify:
-                return arrived
-            got = self.lens.get_focal_power_dpt()
-            if abs(got - power_dpt) <= 0.006:  # one raw step is 0.005 dpt
-                return arrived
-            log.warning("lens set-point read back %.3f dpt, expected %.3f dpt (attempt %d)", got, power_dpt, attempt + 1)
-        raise DriverError(f"lens set-point reads back {got:.3f} dpt instead of {power_dpt:.3f} dpt")
+        return command_lens(self.lens, power_dpt, verify=verify, clock=self.clock.now)
 
     def close(self) -> None:
         """Close the driver and stop the emulator. Idempotent."""

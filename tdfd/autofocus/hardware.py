@@ -150,14 +150,18 @@ class HardwarePlant:
         duration_s: end a continuous run after this long (s); ``None``: until interrupted.
         clock: time source (s).
         sleep: sleep function (s).
+        readback: read every set-point back (``PrDA``; ``PwDA`` has no reply, so a lost
+            command is only caught this way); costs about 2 ms per command.
     """
 
     def __init__(self, camera: Any, lens: Any | None, estimator: Estimator | None, duration_s: float | None = None,
-                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep) -> None:
+                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
+                 readback: bool = True) -> None:
         self.camera, self.lens, self.estimator = camera, lens, estimator
         self.clock, self.sleep = clock, sleep
         self.t0 = clock()
         self.duration_s = duration_s
+        self.readback = readback
         self.lens_ready = self.t0
         self.power_dpt = float("nan")  # last commanded power
         self.halt_requested = False
@@ -174,11 +178,13 @@ class HardwarePlant:
         t = self.clock()
         if self.lens is None:
             return LensFault(power_dpt, "no lens (dry run)", t)
+        from .bench import command_lens
+
         try:
-            self.lens.set_focal_power_dpt(power_dpt)
+            sent = command_lens(self.lens, power_dpt, verify=self.readback, clock=self.clock)
         except TdfdError as exc:
             return LensFault(power_dpt, f"{type(exc).__name__}: {exc}", self.clock())
-        self.lens_ready = self.clock() + settle_s
+        self.lens_ready = sent + settle_s
         self.power_dpt = float(power_dpt)
         return LensAck(power_dpt, t, self.lens_ready)
 
