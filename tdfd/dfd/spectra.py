@@ -125,13 +125,21 @@ class TileSpectra(nn.Module):
         t = self.tile
         win = periodic_hann(t, torch.float64)
         n = torch.arange(t, dtype=torch.float64)
-        phase = 2.0 * math.pi * (self.ky.double()[:, None, None] * n[None, :, None]
-                                 + self.kx.double()[:, None, None] * n[None, None, :]) / t
-        w2 = (win[:, None] * win[None, :])[None]
-        kern = torch.stack([w2 * torch.cos(phase), w2 * torch.sin(phase)], 1).reshape(-1, 1, t, t)
-        if self.prewhiten:
-            kern = F.conv2d(kern, _LAPLACE.double()[None, None], padding=2)
-        return kern.pow(2).sum((1, 2, 3)).reshape(-1, 2).sum(1)
+
+        def one_axis(k: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            # a = w e^{-i k n}, zero-padded by one tap each side; d = second difference of a
+            a = win * torch.exp(-2j * math.pi * k.double()[:, None] * n / t)
+            a = F.pad(torch.view_as_real(a).permute(0, 2, 1), (1, 1))  # (N, 2, T+2) real/imag
+            a = torch.view_as_complex(a.permute(0, 2, 1).contiguous())
+            d = 2 * a - F.pad(a[:, :-1], (1, 0)) - F.pad(a[:, 1:], (0, 1))
+            return a.abs().pow(2).sum(1), d.abs().pow(2).sum(1), (d.conj() * a).sum(1)
+
+        ay, dy, cy = one_axis(self.ky)
+        ax, dx, cx = one_axis(self.kx)
+        if not self.prewhiten:
+            return ay * ax
+        # the Laplacian is (2 - shifts along y) + (2 - shifts along x): two separable terms
+        return dy * ax + ay * dx + 2.0 * (cy * cx.conj()).real
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if x.ndim != 4 or x.shape[1] != 1:
