@@ -123,7 +123,10 @@ def test_onnx_estimator(tmp_path):
     assert est.camera == CAM and (est.tile, est.stride) == (64, 32) and est.backend == "onnxruntime"
     d, c = est(np.full((128, 160), 0.25, np.float32), np.zeros((128, 160), np.float32))
     assert d.shape == (3, 4) and np.allclose(d, 0.5) and np.allclose(c, 0.8)
-    assert isinstance(load_estimator(str(path)), OnnxEstimator)
+    rt = load_estimator(str(path))
+    assert isinstance(rt, OnnxEstimator) and rt.backend == "tdfd.runtime" and rt.camera.to_dict() == CAM.to_dict()
+    d2, c2 = rt(np.full((128, 160), 0.25, np.float32), np.zeros((128, 160), np.float32))
+    np.testing.assert_allclose(d2, d, rtol=1e-6)
     with pytest.raises(ModelError):
         OnnxEstimator(tmp_path / "missing.onnx")
 
@@ -205,3 +208,18 @@ def test_frame_to_linear():
     assert np.allclose(frame_to_linear(bgr), 1.0)
     assert frame_to_linear(np.full((1, 1), 128, np.uint8), linearise=True)[0, 0] == pytest.approx(0.2158, abs=1e-3)
     assert frame_to_linear(np.full((1, 1), 2000, np.uint16), white_level=4095)[0, 0] == pytest.approx(2000 / 4095)
+
+
+def test_cli_continuous_and_faults(tmp_path, capsys):
+    out = tmp_path / "cont.json"
+    rc = main(["autofocus", "--sim", "--continuous", "--duration", "0.25", "--model", "analytic", "--compute", "5",
+               "--readout", "192x256", "--json", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0 and "re-estimates:" in text and "live frames in focus" in text
+    data = json.loads(out.read_text())
+    assert data["result"]["status"] == "halted" and data["frames"]
+    from tdfd.autofocus.cli import _faults
+
+    f = _faults("drop=0.2,bad_crc=0.1", seed=3)
+    assert (f.drop, f.bad_crc, f.seed) == (0.2, 0.1, 3) and _faults(None, 0) is None
+    assert main(["autofocus", "--sim", "--faults", "explode=1", "--model", "analytic"]) == 1

@@ -35,8 +35,17 @@ ONNX_INTRA_THREADS = 2
 
 
 def default_model_path() -> Path:
-    """The shipped model, ``models/reference.onnx`` beside the package."""
-    return Path(__file__).resolve().parents[2] / "models" / "reference.onnx"
+    """The default model: :func:`tdfd.runtime.default_model_path` (``$TDFD_MODEL``, then the
+    shipped ``models/reference.onnx``), or the shipped path if none exists yet."""
+    shipped = Path(__file__).resolve().parents[2] / "models" / "reference.onnx"
+    try:
+        from ..runtime import default_model_path as runtime_default
+    except ImportError:
+        return shipped
+    try:
+        return Path(runtime_default())
+    except ModelError:
+        return shipped
 
 
 def _as_frame(image: np.ndarray, name: str) -> np.ndarray:
@@ -54,6 +63,7 @@ class OnnxEstimator:
     Args:
         path: the ONNX file (default: :func:`default_model_path`).
         use_runtime: prefer :class:`tdfd.runtime.DepthRuntime` if importable.
+        threads: onnxruntime intra-op threads.
 
     Attributes:
         camera: from the ``tdfd.camera`` metadata.
@@ -65,8 +75,9 @@ class OnnxEstimator:
         ModelError: the file is missing or lacks the contract's inputs, outputs or metadata.
     """
 
-    def __init__(self, path: str | Path | None = None, use_runtime: bool = True) -> None:
+    def __init__(self, path: str | Path | None = None, use_runtime: bool = True, threads: int = ONNX_INTRA_THREADS) -> None:
         self.path = Path(path) if path is not None else default_model_path()
+        self.threads = int(threads)
         if not self.path.is_file():
             raise ModelError(f"ONNX model {self.path} not found")
         self._runtime: Any = None
@@ -76,7 +87,7 @@ class OnnxEstimator:
             except ImportError:
                 DepthRuntime = None  # noqa: N806
             if DepthRuntime is not None:
-                rt = DepthRuntime(self.path)
+                rt = DepthRuntime(self.path, threads=self.threads)
                 self._runtime = rt
                 self.camera: Camera = rt.camera
                 self.tile, self.stride = int(rt.tile), int(rt.stride)
@@ -89,7 +100,7 @@ class OnnxEstimator:
         import onnxruntime as ort
 
         opts = ort.SessionOptions()
-        opts.intra_op_num_threads = ONNX_INTRA_THREADS
+        opts.intra_op_num_threads = self.threads
         opts.inter_op_num_threads = 1
         try:
             self._session = ort.InferenceSession(str(self.path), sess_options=opts, providers=["CPUExecutionProvider"])
