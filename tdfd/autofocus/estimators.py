@@ -30,8 +30,8 @@ __all__ = ["OnnxEstimator", "AnalyticEstimator", "load_estimator", "default_mode
 
 log = logging.getLogger(__name__)
 
-#: onnxruntime intra-op threads used by the fallback session (the bench machine has 2 cores).
-ONNX_INTRA_THREADS = 2
+#: onnxruntime intra-op threads (one is as fast as two for ROI-sized frames, and robust on a busy machine).
+ONNX_INTRA_THREADS = 1
 
 
 def default_model_path() -> Path:

@@ -51,7 +51,8 @@ from .controller import (
 )
 from .contrast import ContrastController
 
-__all__ = ["CameraError", "OpenCVCamera", "HardwarePlant", "run_hardware", "HARDWARE_TEMPERATURE_LIMITS_C"]
+__all__ = ["CaptureError", "OpenCVCamera", "HardwarePlant", "frame_to_linear", "run_hardware", "drive_to_halt",
+           "HARDWARE_TEMPERATURE_LIMITS_C"]
 
 log = logging.getLogger(__name__)
 
@@ -59,8 +60,11 @@ log = logging.getLogger(__name__)
 HARDWARE_TEMPERATURE_LIMITS_C = (15.0, 40.0)
 
 
-class CameraError(TdfdError, RuntimeError):
-    """The camera could not be opened or delivered no frame."""
+class CaptureError(TdfdError, RuntimeError):
+    """The capture device could not be opened or delivered no frame.
+
+    (Not :class:`tdfd.errors.CameraError`, which is about an invalid camera *description*.)
+    """
 
 
 def _srgb_to_linear(x: np.ndarray) -> np.ndarray:
@@ -103,7 +107,7 @@ class OpenCVCamera:
         crop: read-out window in frame pixels (``None``: the whole frame).
 
     Raises:
-        CameraError: the source cannot be opened.
+        CaptureError: the source cannot be opened.
     """
 
     def __init__(self, source: str | int, white_level: float | None = None, linearise: bool = False, flush: int = 2,
@@ -113,7 +117,7 @@ class OpenCVCamera:
         src: str | int = int(source) if isinstance(source, str) and source.strip().isdigit() else source
         self.cap = cv2.VideoCapture(src)
         if not self.cap.isOpened():
-            raise CameraError(f"cannot open camera {source!r}")
+            raise CaptureError(f"cannot open camera {source!r}")
         try:
             self.cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)
         except cv2.error:  # pragma: no cover - backend dependent
@@ -125,13 +129,13 @@ class OpenCVCamera:
         """One fresh frame as ``(H, W)`` float32 linear intensity in [0, 1].
 
         Raises:
-            CameraError: no frame.
+            CaptureError: no frame.
         """
         for _ in range(self.flush):
             self.cap.grab()
         ok, frame = self.cap.read()
         if not ok or frame is None:
-            raise CameraError(f"camera {self.source!r} delivered no frame")
+            raise CaptureError(f"camera {self.source!r} delivered no frame")
         x = frame_to_linear(frame, self.white_level, self.linearise)
         return self.crop.crop(x) if self.crop is not None else x
 
@@ -246,7 +250,7 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
         (``status="failed"``), they are not raised.
 
     Raises:
-        CameraError: the camera cannot be opened.
+        CaptureError: the camera cannot be opened.
         LensConnectionError: the port cannot be opened.
         InputError: inconsistent options.
     """
@@ -265,7 +269,7 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
     try:
         limits = None
         if own_lens:
-            lens = OptotuneLens.open(port, handshake=not dry_run) if not dry_run else OptotuneLens.open(port, handshake=False)
+            lens = OptotuneLens.open(port, handshake=not dry_run)  # the handshake zeroes the current: not in a dry run
         if lens is not None and not dry_run:
             fp = lens.set_focal_power_mode(temperature_limits_c)
             limits = (fp.min_dpt, fp.max_dpt)
