@@ -45,6 +45,12 @@ class DataConfig:
         val_size: pairs in the validation set.
         num_workers: DataLoader worker processes generating batches ahead of the loop.
         prefetch_factor: batches each worker prepares ahead.
+        reuse: optimisation steps per freshly generated batch (1 = every step sees new
+            pairs). Synthesis is the bottleneck on a small CPU; reusing each batch a few
+            times, mixed with earlier ones, trains more per generated pair.
+        pool_batches: the replay pool: each step draws its minibatch from the last
+            ``pool_batches`` generated batches (by a generator seeded with the step, so
+            resuming is still exact).
     """
 
     dataset: str = "data_synth:DefocusPairDataset"
@@ -57,6 +63,8 @@ class DataConfig:
     val_size: int = 256
     num_workers: int = 1
     prefetch_factor: int = 4
+    reuse: int = 1
+    pool_batches: int = 1
 
 
 @dataclass
@@ -304,6 +312,7 @@ def validate_config(cfg: TrainConfig) -> None:
         (cfg.data.val_size >= 1, "data.val_size must be >= 1"),
         (cfg.data.num_workers >= 0, "data.num_workers must be >= 0"),
         (cfg.data.prefetch_factor >= 1, "data.prefetch_factor must be >= 1"),
+        (cfg.data.reuse >= 1 and cfg.data.pool_batches >= 1, "data.reuse and data.pool_batches must be >= 1"),
         (cfg.data.seed != cfg.data.val_seed, "data.val_seed must differ from data.seed (held-out set)"),
         (":" in cfg.data.dataset, "data.dataset must be 'module:Class'"),
         (min(cfg.data.height, cfg.data.width) >= cfg.model.tile, "data.height/width must be >= model.tile"),

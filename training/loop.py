@@ -23,7 +23,7 @@ from torch import nn
 
 from tdfd.model import DFDModel
 
-from .config import TrainConfig, config_to_dict
+from .config import ConfigError, TrainConfig, config_to_dict
 from .data import Featurizer, FeatureSet, StepBatches, build_model, featurize_dataset, fetch_batch, make_dataset
 from .losses import depth_relative_error, laplace_nll, refinement_loss
 
@@ -266,9 +266,15 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
         logger.info("validation set: %d pairs (seed %d), %.1f s", len(val), cfg.data.val_seed, time.perf_counter() - t0)
     log = _CsvLog(out / "train_log.csv", start if resume else None) if dist.is_main else None
 
-    steps = cfg.optim.steps
-    batches = StepBatches(train_factory, featurizer_factory, cfg.data.batch_size, dist.rank, dist.world_size, steps)
-    loader_kw: dict[str, Any] = {"batch_size": None, "sampler": range(start, steps), "num_workers": cfg.data.num_workers}
+    steps, reuse, pool_size = cfg.optim.steps, cfg.data.reuse, cfg.data.pool_batches
+    last_ckpt = start
+    if start % reuse and start < steps:
+        raise ConfigError(f"checkpoint step {start} is not a multiple of data.reuse={reuse}")
+    n_batches = -(-steps // reuse)  # generated batches; batch k feeds steps k*reuse .. k*reuse + reuse - 1
+    first_batch = start // reuse
+    warm = max(0, first_batch - pool_size + 1)  # on resume, rebuild the replay pool first
+    batches = StepBatches(train_factory, featurizer_factory, cfg.data.batch_size, dist.rank, dist.world_size, n_batches)
+    loader_kw: dict[str, Any] = {"batch_size": None, "sampler": range(warm, n_batches), "num_workers": cfg.data.num_workers}
     if cfg.data.num_workers > 0:
         loader_kw.update(prefetch_factor=cfg.data.prefetch_factor, persistent_workers=False)
     loader = torch.utils.data.DataLoader(batches, **loader_kw)
@@ -276,59 +282,76 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
 
     bar = tqdm(total=steps, initial=start, disable=not dist.is_main, desc="train", mininterval=5.0, dynamic_ncols=True)
     step, stopped_early, last_val = start, False, {}
-    window = {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "n": 0, "t": time.perf_counter(), "samples": 0}
+    window = {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "n": 0, "t": time.perf_counter(), "samples": 0, "fresh": 0}
+    pool: list[dict[str, torch.Tensor]] = []
     model.train()
-    for batch in loader:
-        b = {k: v.to(dist.device, non_blocking=True) for k, v in batch.items()}
-        q, log_b, _conf, _qa = head(b["features"], b["inverse_depth"], b["rel_error"])
-        loss, parts = refinement_loss(q, log_b, b["tile_depth"], cfg.optim.l1_weight)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        if cfg.optim.grad_clip > 0:
-            torch.nn.utils.clip_grad_norm_(model.refine.parameters(), cfg.optim.grad_clip)
-        opt.step()
-        sched.step()
-        step += 1
-        with torch.no_grad():
-            mre = float(depth_relative_error(1.0 / q.detach(), b["tile_depth"]).median())
-        window["loss"] += float(loss.detach())
-        window["nll"] += parts["nll"]
-        window["l1"] += parts["l1"]
-        window["mre"] += mre
-        window["n"] += 1
-        window["samples"] += cfg.data.batch_size * dist.world_size
-        bar.update(1)
-        elapsed_min = (time.perf_counter() - t_start) / 60.0
-        over_time = cfg.max_minutes > 0 and elapsed_min >= cfg.max_minutes
-        if dist.world_size > 1 and cfg.max_minutes > 0:  # all ranks stop together
-            flag = torch.tensor([float(over_time)], device=dist.device)
-            torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
-            over_time = bool(flag.item() > 0)
-        interrupted = stop_at_step is not None and step >= stop_at_step and step < steps
-        last = step == steps or over_time or interrupted
-        if dist.is_main:
-            row: dict[str, Any] = {}
-            if step % cfg.log_every == 0 or last:
-                n = max(1, window["n"])
-                dt = time.perf_counter() - window["t"]
-                row.update(step=step, time_s=time.perf_counter() - t_start, lr=sched.get_last_lr()[0],
-                           loss=window["loss"] / n, nll=window["nll"] / n, l1=window["l1"] / n,
-                           train_mre=window["mre"] / n, samples_per_s=window["samples"] / max(dt, 1e-9))
-                bar.set_postfix(loss=f"{row['loss']:.3f}", mre=f"{row['train_mre']:.4f}")
-                window = {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "n": 0, "t": time.perf_counter(), "samples": 0}
-            if step % cfg.val_every == 0 or last:
-                last_val = validate(model, val, dist.device)
-                row.update(step=step, time_s=time.perf_counter() - t_start, **last_val)
-                logger.info("step %d: %s", step, ", ".join(f"{k} {v:.4g}" for k, v in last_val.items()))
-            if row:
-                log.write(row)
-            if step % cfg.ckpt_every == 0 or last:
-                save_checkpoint(out / CHECKPOINT_NAME, model, opt, sched, step, cfg)
-        if interrupted:
-            break
-        if over_time and step < steps:
-            stopped_early = True
-            logger.warning("time budget of %.1f min reached at step %d of %d; stopping", cfg.max_minutes, step, steps)
+    for bid, fresh in zip(range(warm, n_batches), loader):
+        pool.append(fresh)
+        del pool[:-pool_size]
+        if bid < first_batch:
+            continue
+        window["fresh"] += cfg.data.batch_size * dist.world_size
+        stacked = {k: torch.cat([p[k] for p in pool]) for k in fresh} if len(pool) > 1 else fresh
+        for _ in range(min(reuse, steps - step)):
+            if len(pool) == 1 and reuse == 1:
+                mb = stacked
+            else:  # a minibatch from the replay pool, drawn by (seed, step, rank)
+                g = torch.Generator().manual_seed((cfg.seed * 1_000_003 + step) * 65_537 + dist.rank)
+                idx = torch.randint(len(stacked["features"]), (cfg.data.batch_size,), generator=g)
+                mb = {k: v[idx] for k, v in stacked.items()}
+            b = {k: v.to(dist.device, non_blocking=True) for k, v in mb.items()}
+            q, log_b, _conf, _qa = head(b["features"], b["inverse_depth"], b["rel_error"])
+            loss, parts = refinement_loss(q, log_b, b["tile_depth"], cfg.optim.l1_weight)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            if cfg.optim.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(model.refine.parameters(), cfg.optim.grad_clip)
+            opt.step()
+            sched.step()
+            step += 1
+            with torch.no_grad():
+                mre = float(depth_relative_error(1.0 / q.detach(), b["tile_depth"]).median())
+            window["loss"] += float(loss.detach())
+            window["nll"] += parts["nll"]
+            window["l1"] += parts["l1"]
+            window["mre"] += mre
+            window["n"] += 1
+            window["samples"] += cfg.data.batch_size * dist.world_size
+            bar.update(1)
+            boundary = step % reuse == 0 or step == steps  # checkpoints and stops only between generated batches
+            over_time = boundary and cfg.max_minutes > 0 and (time.perf_counter() - t_start) / 60.0 >= cfg.max_minutes
+            if boundary and dist.world_size > 1 and cfg.max_minutes > 0:  # all ranks stop together
+                flag = torch.tensor([float(over_time)], device=dist.device)
+                torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+                over_time = bool(flag.item() > 0)
+            interrupted = boundary and stop_at_step is not None and stop_at_step <= step < steps
+            last = step == steps or over_time or interrupted
+            if dist.is_main:
+                row: dict[str, Any] = {}
+                if step % cfg.log_every == 0 or last:
+                    n = max(1, window["n"])
+                    dt = max(time.perf_counter() - window["t"], 1e-9)
+                    row.update(step=step, time_s=time.perf_counter() - t_start, lr=sched.get_last_lr()[0],
+                               loss=window["loss"] / n, nll=window["nll"] / n, l1=window["l1"] / n,
+                               train_mre=window["mre"] / n, samples_per_s=window["fresh"] / dt)
+                    bar.set_postfix(loss=f"{row['loss']:.3f}", mre=f"{row['train_mre']:.4f}")
+                    window = {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "n": 0, "t": time.perf_counter(),
+                              "samples": 0, "fresh": 0}
+                if step % cfg.val_every == 0 or last:
+                    last_val = validate(model, val, dist.device)
+                    row.update(step=step, time_s=time.perf_counter() - t_start, **last_val)
+                    logger.info("step %d: %s", step, ", ".join(f"{k} {v:.4g}" for k, v in last_val.items()))
+                if row:
+                    log.write(row)
+                if (boundary and step // cfg.ckpt_every > last_ckpt // cfg.ckpt_every) or last:
+                    save_checkpoint(out / CHECKPOINT_NAME, model, opt, sched, step, cfg)
+                    last_ckpt = step
+            if over_time and step < steps:
+                stopped_early = True
+                logger.warning("time budget of %.1f min reached at step %d of %d; stopping", cfg.max_minutes, step, steps)
+            if interrupted or stopped_early:
+                break
+        if interrupted or stopped_early or step >= steps:
             break
     bar.close()
     wall = time.perf_counter() - t_start
