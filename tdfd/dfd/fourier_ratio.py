@@ -231,8 +231,8 @@ class FourierRatioDFD(nn.Module):
         omega2 = buf(self.ring_omega2)
         count = buf(self.ring_count)
         snr = torch.minimum(log_s1 - torch.log(n1 + eps), log_s2 - torch.log(n2 + eps))
-        gate = torch.sigmoid(2.0 * (snr - math.log(self.snr_threshold)))
-        var = 2.0 * (n1 / s1 + n2 / s2) / count + 1e-4
+        gate = torch.sigmoid(8.0 * (snr - math.log(self.snr_threshold)))
+        var = ((1.0 + n1 / s1) ** 2 + (1.0 + n2 / s2) ** 2 - 2.0) / count + 1e-4
         w = gate / var
         if self.estimator == "wls":
             sw4 = (w * omega2 * omega2).sum(1, keepdim=True)
