@@ -36,6 +36,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -81,6 +82,7 @@ __all__ = [
     "DEFAULT_READOUT_HW",
     "BENCH_TEXTURE_FAMILIES",
     "BENCH_TEMPERATURE_LIMITS_C",
+    "torch_threads",
 ]
 
 log = logging.getLogger(__name__)
@@ -93,6 +95,26 @@ DEFAULT_READOUT_HW = (256, 320)
 BENCH_TEMPERATURE_LIMITS_C = (15.0, 25.0)
 _BAUD = 115200
 _BITS_PER_BYTE = 10
+
+
+@contextlib.contextmanager
+def torch_threads(n: int | None) -> Iterator[None]:
+    """Run the block with ``n`` torch intra-op threads (``None``: unchanged), then restore.
+
+    The bench's frames are small: one thread is as fast as two, and on a busy machine two
+    threads can be many times slower (the pool waits on a preempted worker).
+    """
+    import torch
+
+    before = torch.get_num_threads()
+    if n is None or n == before:
+        yield
+        return
+    torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 # ------------------------------------------------------------------------------ clock
@@ -202,8 +224,8 @@ class SensorNoise:
             return y.astype(np.float32)
         model = SensorModel(full_well_e=self.full_well_e, read_noise_e=self.read_noise_e, bits=self.bits,
                             black_level_dn=self.black_level_dn)
-        with torch.no_grad():
-            y = model(torch.from_numpy(x).float()[None, None], generator=torch.Generator().manual_seed(seed))
+        with torch.no_grad(), torch_threads(1):
+            y = model(torch.from_numpy(x.astype(np.float32))[None, None], generator=torch.Generator().manual_seed(seed))
         return y[0, 0].numpy().astype(np.float32)
 
 
@@ -371,8 +393,9 @@ class VirtualCamera:
 
         key = self.scene
         if self._cache is None or self._cache[0] is not key:
-            sharp = torch.from_numpy(self.scene.sharp).float()[None, None]
-            depth = torch.from_numpy(self.scene.depth_m).float()[None, None]
+            # numpy does the dtype conversion: no torch thread pool involved
+            sharp = torch.from_numpy(np.ascontiguousarray(self.scene.sharp, dtype=np.float32))[None, None]
+            depth = torch.from_numpy(np.ascontiguousarray(self.scene.depth_m, dtype=np.float32))[None, None]
             self._cache = (key, sharp, depth)
         return self._cache[1], self._cache[2]
 
@@ -384,17 +407,11 @@ class VirtualCamera:
 
         sharp, depth = self._tensors()
         p = torch.tensor(list(powers_dpt), dtype=torch.float32)
-        before = torch.get_num_threads()
-        if self.threads is not None and self.threads != before:
-            torch.set_num_threads(self.threads)
-        try:
-            with torch.no_grad():
-                out = render_at_power(self.camera, sharp.expand(len(p), -1, -1, -1), depth.expand(len(p), -1, -1, -1),
-                                      p, shape=self.psf, mu=self.mu)
-        finally:
-            if self.threads is not None and self.threads != before:
-                torch.set_num_threads(before)
-        return out.mean(0)[0].numpy().astype(np.float64)
+        with torch.no_grad(), torch_threads(self.threads):
+            out = render_at_power(self.camera, sharp.expand(len(p), -1, -1, -1), depth.expand(len(p), -1, -1, -1),
+                                  p, shape=self.psf, mu=self.mu)
+            out = out[0, 0] if len(p) == 1 else out.mean(0)[0]
+        return out.numpy().astype(np.float64)
 
     def expose(self, t_start_s: float) -> tuple[np.ndarray, float]:
         """Expose from ``t_start_s`` for ``timing.exposure_s``.

@@ -164,15 +164,10 @@ class AnalyticEstimator:
         torch = self._torch
         a = torch.from_numpy(_as_frame(image_f1, "image_f1").copy())
         b = torch.from_numpy(_as_frame(image_f2, "image_f2").copy())
-        before = torch.get_num_threads()
-        if self.threads is not None and self.threads != before:
-            torch.set_num_threads(self.threads)
-        try:
-            with torch.no_grad():
-                depth, conf = self._model(a, b)
-        finally:
-            if self.threads is not None and self.threads != before:
-                torch.set_num_threads(before)
+        from .bench import torch_threads
+
+        with torch.no_grad(), torch_threads(self.threads):
+            depth, conf = self._model(a, b)
         return depth[0, 0].numpy(), conf[0, 0].numpy()
 
     def __repr__(self) -> str:
