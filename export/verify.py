@@ -235,22 +235,16 @@ class ParityReport:
         return "\n".join(lines)
 
 
-def _session(path: Path, threads: int):
-    import onnxruntime as ort
+def _session(path: Path, threads: int, optimization: str):
+    from tdfd.runtime import make_session
 
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = int(threads)
-    so.inter_op_num_threads = 1
-    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    try:
-        return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
-    except Exception as exc:
-        raise ModelError(f"onnxruntime cannot load {path}: {exc}") from exc
+    return make_session(path, threads, optimization)
 
 
 def verify_onnx(path: str | Path, model: nn.Module | None = None,
                 sizes: Sequence[tuple[int, int]] = DEFAULT_SIZES, batches: Sequence[int] = DEFAULT_BATCHES,
-                rtol: float = 1e-4, conf_atol: float = 1e-4, threads: int = 2, seed: int = 0) -> ParityReport:
+                rtol: float = 1e-4, conf_atol: float = 1e-4, threads: int = 2, seed: int = 0,
+                optimization: str | None = None) -> ParityReport:
     """Check an exported file and its agreement with the torch model.
 
     Args:
@@ -263,6 +257,8 @@ def verify_onnx(path: str | Path, model: nn.Module | None = None,
         conf_atol: largest absolute difference allowed on ``confidence``.
         threads: ONNX Runtime intra-op threads.
         seed: seed of the rendered scenes.
+        optimization: ONNX Runtime graph optimisation level (default: the one
+            :class:`tdfd.runtime.DepthRuntime` uses).
 
     Returns:
         A :class:`ParityReport`.
@@ -286,7 +282,9 @@ def verify_onnx(path: str | Path, model: nn.Module | None = None,
     report = ParityReport(path=path, metadata=metadata, rtol=rtol, conf_atol=conf_atol)
     if model is None:
         return report
-    sess = _session(path, threads)
+    from tdfd.runtime import DEFAULT_OPTIMIZATION
+
+    sess = _session(path, threads, optimization or DEFAULT_OPTIMIZATION)
     worst: tuple[float, str] = (-1.0, "")
     failed = False
     with _export_mode(model), torch.no_grad():

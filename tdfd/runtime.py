@@ -47,7 +47,9 @@ __all__ = [
     "tile_centres",
     "resample_to_image",
     "in_focus_power_dpt",
+    "make_session",
     "DEFAULT_MODEL_ENV",
+    "DEFAULT_OPTIMIZATION",
     "INPUT_NAMES",
     "OUTPUT_NAMES",
 ]
@@ -177,8 +179,8 @@ class DepthResult:
         else:
             ys, xs = tile_centres(H, W, self.tile, self.stride)
             ys, xs = ys + 0.5, xs + 0.5
-        iny = np.abs(ys - H / 2.0) <= fraction * H / 2.0
-        inx = np.abs(xs - W / 2.0) <= fraction * W / 2.0
+        iny = np.abs(ys - H / 2.0) < fraction * H / 2.0
+        inx = np.abs(xs - W / 2.0) < fraction * W / 2.0
         if not iny.any():  # always keep the middle row / column
             iny[np.argmin(np.abs(ys - H / 2.0))] = True
         if not inx.any():
@@ -198,8 +200,9 @@ class DepthResult:
     def centre_depth(self, fraction: float = 0.5, threshold: float = 0.5) -> float | np.ndarray:
         """Median depth (metres) of the confident cells in the centre region.
 
-        The centre region holds the cells (or pixels) whose centres lie in the middle
-        ``fraction`` of the image height and width (at least the middle row and column).
+        The centre region holds the cells (or pixels) whose centres lie strictly inside the
+        middle ``fraction`` of the image height and width (at least the cells nearest the
+        image centre).
 
         Returns:
             A float for a single image, else an ``(N,)`` array; ``nan`` where no cell of the
@@ -256,6 +259,45 @@ def _as_images(name: str, image: Any, white_level: float | None) -> tuple[np.nda
     raise DTypeError(f"{name} has dtype {dt}; expected uint8, uint16 (scaled by the white level) or float in [0, 1]")
 
 
+#: ONNX Runtime graph optimisation levels by name.
+OPTIMIZATION_LEVELS = ("all", "extended", "basic", "disable")
+#: The level :class:`DepthRuntime` uses by default (fastest for this model on CPU, see
+#: ``docs/BENCHMARKS.md``).
+DEFAULT_OPTIMIZATION = "extended"
+
+
+def make_session(model_path: str | os.PathLike, threads: int = 2, optimization: str = DEFAULT_OPTIMIZATION,
+                 providers: Sequence[str] | None = None) -> Any:
+    """An ``onnxruntime.InferenceSession`` with ``threads`` intra-op threads (one inter-op).
+
+    Raises:
+        ModelError: the file is missing or onnxruntime cannot load it.
+        InputError: bad ``threads`` or ``optimization``.
+    """
+    import onnxruntime as ort
+
+    path = Path(model_path)
+    if not path.is_file():
+        raise ModelError(f"model file {path} does not exist")
+    if int(threads) < 1:
+        raise InputError(f"threads must be >= 1, got {threads}")
+    levels = dict(zip(OPTIMIZATION_LEVELS, (ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+                                            ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+                                            ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+                                            ort.GraphOptimizationLevel.ORT_DISABLE_ALL)))
+    if optimization not in levels:
+        raise InputError(f"optimization must be one of {list(OPTIMIZATION_LEVELS)}, got {optimization!r}")
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = int(threads)
+    so.inter_op_num_threads = 1
+    so.graph_optimization_level = levels[optimization]
+    try:
+        return ort.InferenceSession(str(path), so, providers=list(providers or ["CPUExecutionProvider"]))
+    except Exception as exc:  # onnxruntime raises its own exception types
+        first = str(exc).splitlines()[0] if str(exc) else repr(exc)
+        raise ModelError(f"onnxruntime cannot load {path}: {first}") from exc
+
+
 class DepthRuntime:
     """Run an exported tdfd model with ONNX Runtime (CPU by default, no torch).
 
@@ -263,8 +305,8 @@ class DepthRuntime:
         model_path: the ``.onnx`` file; ``None`` takes :func:`default_model_path`.
         threads: intra-op threads of the session.
         providers: ONNX Runtime execution providers (default CPU).
-        optimization: ONNX Runtime graph optimisation level: ``"all"``, ``"extended"``,
-            ``"basic"`` or ``"disable"``.
+        optimization: ONNX Runtime graph optimisation level: ``"all"``, ``"extended"``
+            (default), ``"basic"`` or ``"disable"``.
 
     Raises:
         ModelError: a missing, unreadable or non-conforming file (wrong inputs/outputs,
@@ -278,30 +320,11 @@ class DepthRuntime:
     """
 
     def __init__(self, model_path: str | os.PathLike | None = None, threads: int = 2,
-                 providers: Sequence[str] | None = None, optimization: str = "extended") -> None:
-        import onnxruntime as ort
-
+                 providers: Sequence[str] | None = None, optimization: str = DEFAULT_OPTIMIZATION) -> None:
         path = default_model_path() if model_path is None else Path(model_path)
-        if not path.is_file():
-            raise ModelError(f"model file {path} does not exist")
-        if int(threads) < 1:
-            raise InputError(f"threads must be >= 1, got {threads}")
-        levels = {"all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
-                  "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
-                  "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
-                  "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL}
-        if optimization not in levels:
-            raise InputError(f"optimization must be one of {sorted(levels)}, got {optimization!r}")
-        so = ort.SessionOptions()
-        so.intra_op_num_threads = int(threads)
-        so.inter_op_num_threads = 1
-        so.graph_optimization_level = levels[optimization]
         self.path = path
         self.threads = int(threads)
-        try:
-            self.session = ort.InferenceSession(str(path), so, providers=list(providers or ["CPUExecutionProvider"]))
-        except Exception as exc:  # onnxruntime raises its own exception types
-            raise ModelError(f"onnxruntime cannot load {path}: {str(exc).splitlines()[0] if str(exc) else exc!r}") from exc
+        self.session = make_session(path, threads, optimization, providers)
         inputs = [i.name for i in self.session.get_inputs()]
         outputs = [o.name for o in self.session.get_outputs()]
         if tuple(inputs) != INPUT_NAMES or tuple(outputs) != OUTPUT_NAMES:

@@ -1,0 +1,87 @@
+"""``python -m export``: export a trained DFD model to ONNX and verify it.
+
+::
+
+    python -m export --weights models/reference.safetensors --out models/reference.onnx
+
+Loads :class:`tdfd.model.DFDModel` from ``<stem>.safetensors`` + ``<stem>.json``, exports it
+(:func:`export.export_model`), then runs :func:`export.verify_onnx` (checker, contract,
+ONNX Runtime versus torch on rendered pairs). Exit status 1 with a one-line error when
+anything fails; ``--analytic`` exports the bare analytic layer instead (for development).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 480x640, got {text!r}") from None
+    return h, w
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m export", description=__doc__.split("\n\n")[0])
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--weights", type=Path, help="trained model: <stem>.safetensors (with <stem>.json beside it)")
+    src.add_argument("--analytic", action="store_true",
+                     help="export the analytic layer alone (reference camera, depth_analytic = depth)")
+    p.add_argument("--out", type=Path, required=True, help="output .onnx file")
+    p.add_argument("--opset", type=int, default=18, help="ONNX opset (>= 18, default 18)")
+    p.add_argument("--no-optimize", action="store_true", help="skip the ONNX optimiser")
+    p.add_argument("--sizes", type=_parse_size, nargs="+", default=None,
+                   help="parity image sizes HxW (default 64x64 150x203 480x640 1200x1600)")
+    p.add_argument("--batches", type=int, nargs="+", default=[1, 3], help="parity batch sizes (default 1 3)")
+    p.add_argument("--no-verify", action="store_true", help="export only")
+    p.add_argument("-v", "--verbose", action="store_true")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if not args.verbose:  # the exporter's optimiser logs every pass at INFO
+        for name in ("onnx_ir", "onnxscript", "torch.onnx", "torch.export"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+    from tdfd.errors import TdfdError
+
+    from .onnx_export import export_model
+    from .verify import verify_onnx
+
+    try:
+        if args.analytic:
+            from .standin import analytic_model
+
+            model = analytic_model()
+        else:
+            from tdfd.model import DFDModel
+
+            model = DFDModel.load(args.weights)
+        model.eval()
+        t0 = time.perf_counter()
+        path = export_model(model, args.out, opset=args.opset, optimize=not args.no_optimize)
+        print(f"exported {path} ({path.stat().st_size / 1024:.0f} kB) in {time.perf_counter() - t0:.1f} s")
+        if not args.no_verify:
+            sizes = args.sizes or [(64, 64), (150, 203), (480, 640), (1200, 1600)]
+            t0 = time.perf_counter()
+            report = verify_onnx(path, model, sizes=sizes, batches=args.batches)
+            print(report)
+            print(f"verified in {time.perf_counter() - t0:.1f} s")
+    except TdfdError as exc:
+        print(f"python -m export: error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,152 @@
+"""``tdfd depth``: on 16-bit PNGs written by the synthesis CLI, outputs, one-line errors, no torch."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from export.testing import session_onnx_model
+from tdfd.cli import main
+from tdfd.depth_cli import _nice_ticks, colorize_depth, read_frame
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory):
+    return session_onnx_model(tmp_path_factory)[0]
+
+
+@pytest.fixture(scope="module")
+def synth_pngs(tmp_path_factory):
+    """Two pairs from ``python -m data_synth --png16`` (the synthesis CLI), 160x224 pixels."""
+    out = tmp_path_factory.mktemp("synth")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    run = subprocess.run([sys.executable, "-m", "data_synth", "--out", str(out), "--count", "2", "--size", "160x224",
+                          "--families", "fractal,dead_leaves", "--png16", "-q"],
+                         capture_output=True, text=True, cwd=ROOT, env=env, timeout=300)
+    assert run.returncode == 0, run.stderr
+    pngs = out / "png16"
+    return [(pngs / f"pair_{i:05d}_f1.png", pngs / f"pair_{i:05d}_f2.png", pngs / f"pair_{i:05d}_depth.npy")
+            for i in range(2)]
+
+
+def _run(capsys, *args):
+    rc = main(["depth", *map(str, args)])
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+def test_depth_on_synthesis_pngs_npy(synth_pngs, model_path, tmp_path, capsys):
+    f1, f2, truth = synth_pngs[0]
+    assert cv2.imread(str(f1), cv2.IMREAD_UNCHANGED).dtype == np.uint16
+    out = tmp_path / "depth.npy"
+    rc, stdout, err = _run(capsys, f1, f2, "--model", model_path, "-o", out)
+    assert rc == 0, err
+    assert "centre depth:" in stdout and "valid:" in stdout and "cells (confidence >= 0.5)" in stdout
+    depth = np.load(out)
+    assert depth.shape == ((160 - 64) // 32 + 1, (224 - 64) // 32 + 1) and depth.dtype == np.float32
+    assert np.all(depth > 0)
+    colour = cv2.imread(str(tmp_path / "depth_color.png"), cv2.IMREAD_UNCHANGED)
+    assert colour.ndim == 3 and colour.shape[2] == 3 and colour.shape[0] > 160 and colour.shape[1] >= 224
+    assert np.isfinite(np.load(truth)).all()
+
+
+def test_depth_tiff_full_resolution_and_png_mm(synth_pngs, model_path, tmp_path, capsys):
+    f1, f2, _ = synth_pngs[1]
+    rc, _, err = _run(capsys, f1, f2, "--model", model_path, "-o", tmp_path / "d.tiff", "--full-resolution")
+    assert rc == 0, err
+    tiff = cv2.imread(str(tmp_path / "d.tiff"), cv2.IMREAD_UNCHANGED)
+    assert tiff.shape == (160, 224) and tiff.dtype == np.float32
+    rc, _, err = _run(capsys, f1, f2, "--model", model_path, "-o", tmp_path / "d.png", "--threshold", "0")
+    assert rc == 0, err
+    mm = cv2.imread(str(tmp_path / "d.png"), cv2.IMREAD_UNCHANGED)
+    assert mm.dtype == np.uint16 and mm.shape == (4, 6)
+    np.testing.assert_allclose(mm / 1000.0, cv2.resize(tiff, (6, 4), interpolation=cv2.INTER_AREA), rtol=0.5)
+    assert (tmp_path / "d_color.png").is_file() and (tmp_path / "d_color.png").stat().st_size > 1000
+
+
+def test_env_model_and_eight_bit(synth_pngs, model_path, tmp_path, capsys, monkeypatch):
+    f1, f2, _ = synth_pngs[0]
+    for src, name in ((f1, "a.png"), (f2, "b.png")):
+        im = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(tmp_path / name), (im // 257).astype(np.uint8))
+    monkeypatch.setenv("TDFD_MODEL", str(model_path))
+    rc, stdout, err = _run(capsys, tmp_path / "a.png", tmp_path / "b.png")
+    assert rc == 0, err
+    assert "uint8" in stdout
+
+
+def _one_line_error(rc, err, pattern):
+    assert rc == 1
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("tdfd depth: error: ")
+    assert pattern in lines[0], lines[0]
+
+
+def test_errors_are_one_line(synth_pngs, model_path, tmp_path, capsys):
+    f1, f2, _ = synth_pngs[0]
+    im = cv2.imread(str(f1), cv2.IMREAD_UNCHANGED)
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), im[:100, :150])
+    _one_line_error(*_run(capsys, f1, small, "--model", model_path)[::2], "same size")
+    _one_line_error(*_run(capsys, f1, tmp_path / "missing.png", "--model", model_path)[::2], "no such file")
+    junk = tmp_path / "junk.png"
+    junk.write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 10)
+    _one_line_error(*_run(capsys, junk, f2, "--model", model_path)[::2], "cannot read")
+    colour = tmp_path / "colour.png"
+    cv2.imwrite(str(colour), np.stack([im] * 3, -1))
+    _one_line_error(*_run(capsys, colour, colour, "--model", model_path)[::2], "3 channels")
+    f64 = tmp_path / "f64.tiff"
+    cv2.imwrite(str(f64), im.astype(np.float64) / 65535.0)
+    _one_line_error(*_run(capsys, f64, f64, "--model", model_path)[::2], "float64")
+    i16 = tmp_path / "i16.tiff"
+    cv2.imwrite(str(i16), (im // 2).astype(np.int16))
+    _one_line_error(*_run(capsys, i16, i16, "--model", model_path)[::2], "int16")
+    eight = tmp_path / "eight.png"
+    cv2.imwrite(str(eight), (im // 257).astype(np.uint8))
+    _one_line_error(*_run(capsys, f1, eight, "--model", model_path)[::2], "uint8")
+    _one_line_error(*_run(capsys, f1, f2, "--model", tmp_path / "none.onnx")[::2], "does not exist")
+    _one_line_error(*_run(capsys, f1, f2, "--model", model_path, "-o", tmp_path / "d.jpg")[::2], ".npy")
+    _one_line_error(*_run(capsys, f1, f2, "--model", model_path, "--white-level", "1000")[::2], "white level")
+    tiny = tmp_path / "tiny.png"
+    cv2.imwrite(str(tiny), im[:40, :40])
+    _one_line_error(*_run(capsys, tiny, tiny, "--model", model_path)[::2], "smaller than one 64x64 tile")
+
+
+def test_float32_tiff_accepted(synth_pngs, model_path, tmp_path, capsys):
+    f1, f2, _ = synth_pngs[0]
+    for src, name in ((f1, "a.tiff"), (f2, "b.tiff")):
+        cv2.imwrite(str(tmp_path / name), cv2.imread(str(src), cv2.IMREAD_UNCHANGED).astype(np.float32) / 65535.0)
+    assert read_frame(tmp_path / "a.tiff").dtype == np.float32
+    rc, stdout, err = _run(capsys, tmp_path / "a.tiff", tmp_path / "b.tiff", "--model", model_path)
+    assert rc == 0, err
+    assert "float32" in stdout
+
+
+def test_cli_needs_no_torch(synth_pngs, model_path, tmp_path):
+    f1, f2, _ = synth_pngs[0]
+    code = ("import sys\nsys.modules['torch'] = None\nfrom tdfd.cli import main\n"
+            f"sys.exit(main(['depth', {str(f1)!r}, {str(f2)!r}, '--model', {str(model_path)!r}, '-o', "
+            f"{str(tmp_path / 'x.npy')!r}]))\n")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "x.npy").is_file() and (tmp_path / "x_color.png").is_file()
+
+
+def test_colorize_and_ticks():
+    depth = np.linspace(0.3, 1.0, 64 * 80, dtype=np.float32).reshape(64, 80)
+    conf = np.ones_like(depth)
+    conf[:10] = 0
+    pic = colorize_depth(depth, conf, (0.3, 1.0))
+    assert pic.dtype == np.uint8 and pic.shape[1] >= 480 and pic.shape[0] == 64 * 6 + 60
+    assert _nice_ticks(0.3, 1.0) == [0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]
+    assert _nice_ticks(0.2, 3.0)[0] == 0.5
