@@ -788,6 +788,7 @@ class SimBench:
         self.texture_families = tuple(texture_families) if texture_families else None
         self.clock = SimClock()
         self.rng = np.random.default_rng(self.seed)
+        self._phase_rng = np.random.default_rng([self.seed, 1])
         self.lens: EmulatedLens | None = None
         self.last_plant: BenchPlant | None = None
         if compute_s not in ("calibrated", "measured") and not (isinstance(compute_s, (int, float)) and compute_s >= 0):
@@ -872,8 +873,9 @@ class SimBench:
                   idle_s: float = 0.1, **controller: Any) -> TrialRecord:
         """One autofocus trial on a target at ``target_m``; never raises for a lens fault.
 
-        The lens starts wherever the previous trial left it; ``idle_s`` of simulated time
-        passes first (the lens settles, the free-running frame clock drifts in phase).
+        The lens starts wherever the previous trial left it; ``idle_s`` plus a random
+        (seeded) fraction of a frame period passes first, so the request falls at a random
+        phase of a free-running camera's frame clock.
 
         Returns:
             The :class:`TrialRecord`.
@@ -883,7 +885,7 @@ class SimBench:
         assert self.lens is not None
         if method == "dfd" and self.estimator is None:
             raise InputError("DFD needs a depth estimator")
-        self.clock.advance(idle_s)
+        self.clock.advance(idle_s + float(self._phase_rng.uniform(0.0, self.timing.frame_period_s)))
         scene = self.scene_for(target_m, trial, uniform)
         target = scene.roi_depth_m(self.roi)
         plant = self._plant(scene)

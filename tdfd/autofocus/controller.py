@@ -594,10 +594,14 @@ class StateMachine:
         self._lens_power: float | None = None
 
     # -------------------------------------------------------------- public protocol
-    def start(self) -> Command:
-        """Begin a run and return the first command."""
+    def start(self, t_s: float | None = None) -> Command:
+        """Begin a run and return the first command.
+
+        Args:
+            t_s: time of the focus request (s); default: the time of the first observation.
+        """
         self.state = State.IDLE
-        self.result = AFResult(method=self._initial_method())
+        self.result = AFResult(method=self._initial_method(), t_start_s=t_s)
         self._gen = self._wrapped()
         return self._advance(None, first=True)
 
@@ -941,7 +945,7 @@ def drive(controller: StateMachine, plant: Plant, max_steps: int = 100_000) -> A
     Raises:
         ControllerError: more than ``max_steps`` commands (a controller bug).
     """
-    cmd = controller.start()
+    cmd = controller.start(plant.now())
     for _ in range(max_steps):
         if isinstance(cmd, Done):
             return cmd.result
