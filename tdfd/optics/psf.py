@@ -109,10 +109,11 @@ def power_exponential_psf(sigma: torch.Tensor, beta: float, size: int, supersamp
     n = size * ss
     x = (torch.arange(n, dtype=sigma.dtype, device=sigma.device) + 0.5) / ss - size / 2.0
     r = torch.sqrt(x[:, None] ** 2 + x[None, :] ** 2)
-    logits = -((r / alpha) ** beta)
+    # float64 logits: (r / alpha)^beta overflows float32 for small sigma and large beta
+    logits = -((r.double() / alpha.double()) ** beta)
     batch = logits.shape[:-2]
     w = torch.softmax(logits.reshape(*batch, -1), dim=-1).reshape(*batch, size, ss, size, ss)
-    return w.sum((-1, -3))
+    return w.sum((-1, -3)).to(sigma.dtype)
 
 
 def psf_kernel(sigma: torch.Tensor, shape: PSFShape, size: int) -> torch.Tensor:

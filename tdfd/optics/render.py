@@ -68,9 +68,14 @@ def _check_image(image: torch.Tensor, name: str = "image") -> None:
 def _otf_of_kernels(kernels: torch.Tensor, padded_hw: tuple[int, int]) -> torch.Tensor:
     """rfft2 of centred kernels ``(*, k, k)`` embedded in a ``padded_hw`` array."""
     k = kernels.shape[-1]
+    c = k // 2
     hp, wp = padded_hw
-    full = F.pad(kernels, (0, wp - k, 0, hp - k))
-    full = torch.roll(full, shifts=(-(k // 2), -(k // 2)), dims=(-2, -1))
+    # the kernel's centre tap goes to (0, 0), the rest wraps around (circular shift)
+    full = kernels.new_zeros(*kernels.shape[:-2], hp, wp)
+    full[..., : k - c, : k - c] = kernels[..., c:, c:]
+    full[..., : k - c, wp - c :] = kernels[..., c:, :c]
+    full[..., hp - c :, : k - c] = kernels[..., :c, c:]
+    full[..., hp - c :, wp - c :] = kernels[..., :c, :c]
     return torch.fft.rfft2(full)
 
 
@@ -169,8 +174,11 @@ def _kernel_otfs(kernels: KernelOut, padded_hw: tuple[int, int]) -> tuple[torch.
     if isinstance(kernels, tuple):
         ky, kx = kernels
         k = ky.shape[-1]
-        fy = torch.fft.fft(torch.roll(F.pad(ky, (0, hp - k)), -(k // 2), -1))
-        fx = torch.fft.rfft(torch.roll(F.pad(kx, (0, wp - k)), -(k // 2), -1))
+        c = k // 2
+        py, px = ky.new_zeros(*ky.shape[:-1], hp), kx.new_zeros(*kx.shape[:-1], wp)
+        py[..., : k - c], py[..., hp - c :] = ky[..., c:], ky[..., :c]
+        px[..., : k - c], px[..., wp - c :] = kx[..., c:], kx[..., :c]
+        fy, fx = torch.fft.fft(py), torch.fft.rfft(px)
         return fy[..., :, None] * fx[..., None, :], k // 2
     return _otf_of_kernels(kernels, padded_hw), kernels.shape[-1] // 2
 
@@ -203,29 +211,11 @@ def _entry_otfs(kernel_fn: KernelFn, psf_sigma: torch.Tensor, owner: torch.Tenso
     return otf.reshape(n, n_frames, hp, wp // 2 + 1), pad, (hp, wp)
 
 
-def _blur_entries(image: torch.Tensor, alpha: torch.Tensor, owner: torch.Tensor, psf_sigma: torch.Tensor,
-                  kernel_fn: KernelFn) -> torch.Tensor:
-    """Blur ``alpha * image`` and ``alpha`` of N layer entries with F PSFs each.
-
-    ``alpha`` ``(N, 1, H, W)``, ``owner`` ``(N,)`` sample index, ``psf_sigma`` ``(N, F)``.
-    Returns ``(N, F, C+1, H, W)``: blurred colour channels, then the blurred coverage.
-    """
-    h, w = image.shape[-2:]
-    otf, pad, (hp, wp) = _entry_otfs(kernel_fn, psf_sigma, owner, (h, w))
-    stack = torch.cat([alpha * image[owner], alpha], dim=1)  # (N, C+1, H, W)
-    spec = torch.fft.rfft2(_pad(stack, pad), s=(hp, wp))
-    return torch.fft.irfft2(spec[:, None] * otf[:, :, None], s=(hp, wp))[..., pad : pad + h, pad : pad + w]
-
-
-def _gather_entries(image: torch.Tensor, owner: torch.Tensor, psf_sigma: torch.Tensor,
-                    kernel_fn: KernelFn) -> torch.Tensor:
-    """The whole image of each entry's sample blurred by the entry's F PSFs: ``(N, F, C, H, W)``;
-    one forward FFT per sample, shared by all its entries."""
-    h, w = image.shape[-2:]
-    otf, pad, (hp, wp) = _entry_otfs(kernel_fn, psf_sigma, owner, (h, w))
-    samples, local = torch.unique(owner, return_inverse=True)
-    spec = torch.fft.rfft2(_pad(image[samples], pad), s=(hp, wp))  # (S, C, hp, wq)
-    return torch.fft.irfft2(spec[local][:, None] * otf[:, :, None], s=(hp, wp))[..., pad : pad + h, pad : pad + w]
+def _irfft2_crop(spec: torch.Tensor, hp: int, wp: int, pad: int, h: int, w: int) -> torch.Tensor:
+    """``irfft2(spec, s=(hp, wp))[..., pad:pad+h, pad:pad+w]`` without computing the rows
+    that are cropped away."""
+    x = torch.fft.ifft(spec, n=hp, dim=-2)[..., pad : pad + h, :]
+    return torch.fft.irfft(x, n=wp, dim=-1)[..., pad : pad + w]
 
 
 def defocus_layered_multi(image: torch.Tensor, sigma: torch.Tensor, offsets: torch.Tensor | None = None,
@@ -310,8 +300,9 @@ def defocus_layered_multi(image: torch.Tensor, sigma: torch.Tensor, offsets: tor
     if bool(planar.any()):  # one PSF of exactly the plane's blur
         ip = planar.nonzero(as_tuple=True)[0]
         psf_sigma = sigma.reshape(b, -1)[ip, :1] + offsets[ip]
-        blurred = _blur_entries(image, torch.ones_like(sigma[ip]), ip, psf_sigma, kernel_fn)
-        out = out.index_put((ip,), blurred[:, :, :c] / blurred[:, :, c:].clamp_min(1e-6))
+        otf, pad, (hp, wp) = _entry_otfs(kernel_fn, psf_sigma, ip, (h, w))
+        spec = torch.fft.rfft2(_pad(image[ip], pad), s=(hp, wp))
+        out = out.index_put((ip,), _irfft2_crop(spec[:, None] * otf[:, :, None], hp, wp, pad, h, w))
     if bool(planar.all()):
         return out
     layered = (~planar).nonzero(as_tuple=True)[0]
@@ -332,20 +323,43 @@ def defocus_layered_multi(image: torch.Tensor, sigma: torch.Tensor, offsets: tor
         touched = alpha.detach().reshape(b, n_layers, -1).amax(-1) > 0
     idx_b, idx_l = (touched & sel[:, None]).nonzero(as_tuple=True)  # layers some pixel falls into
     psf_sigma = centres[idx_l][:, None] + offsets[idx_b]  # (N, F)
-    if not occlusion:  # gather: per-pixel mix of whole-image blurs
-        blurred = _gather_entries(image, idx_b, psf_sigma, kernel_fn)  # (N, F, C, H, W)
-        mixed = blurred * alpha[idx_b, idx_l][:, None, None]
-        full = mixed.new_zeros(b, n_frames, c, h, w).index_add(0, idx_b, mixed)
-        return torch.where(planar[:, None, None, None, None], out, full)
-    blurred = _blur_entries(image, alpha[idx_b, idx_l][:, None], idx_b, psf_sigma, kernel_fn)
-    full = blurred.new_zeros(b, n_layers, n_frames, c + 1, h, w).index_put((idx_b, idx_l), blurred)
-    colour, cover = full[:, :, :, :c], full[:, :, :, c:].clamp(0.0, 1.0)
-    # transmittance through layers nearer by more than one spacing: T_l = prod_{k <= l-2} (1 - A_k)
-    clear = torch.cumprod(1.0 - cover.clamp(max=1.0 - 1e-6), dim=1)
-    trans = torch.cat([torch.ones_like(clear[:, :2]), clear[:, : n_layers - 2]], dim=1)
-    num = (colour * trans).sum(1)
-    den = (cover * trans).sum(1).clamp_min(1e-6)
-    return torch.where(planar[:, None, None, None, None], out, num / den)
+    otf, pad, (hp, wp) = _entry_otfs(kernel_fn, psf_sigma, idx_b, (h, w))
+    num = image.new_zeros(b, n_frames, c, h, w)
+    if not occlusion:  # gather: per-pixel mix of whole-image blurs, one forward FFT per sample
+        spec_img = torch.fft.rfft2(_pad(image, pad), s=(hp, wp))  # (B, C, hp, wq)
+    else:
+        den = image.new_zeros(b, n_frames, 1, h, w)
+        clear_1 = image.new_ones(b, n_frames, 1, h, w)  # prod_{k <= l-1} (1 - A_k)
+        clear_2 = clear_1  # prod_{k <= l-2} (1 - A_k): transmittance of layer l
+    # stream the layers near to far (small working set; front-to-back compositing)
+    order = torch.argsort(idx_l, stable=True)
+    idx_b, idx_l, otf = idx_b[order], idx_l[order], otf[order]
+    counts = torch.bincount(idx_l, minlength=n_layers).tolist()
+    start = 0
+    for layer in range(n_layers):
+        stop = start + counts[layer]
+        if stop == start:  # no sample uses this layer: nothing is added, coverage 0
+            if occlusion:
+                clear_2 = clear_1
+            continue
+        sb = idx_b[start:stop]
+        a = alpha[sb, layer][:, None]  # (n, 1, H, W)
+        if not occlusion:
+            blurred = _irfft2_crop(spec_img[sb][:, None] * otf[start:stop, :, None], hp, wp, pad, h, w)
+            num = num.index_add(0, sb, blurred * a[:, None])
+        else:
+            stack = torch.cat([a * image[sb], a], dim=1)  # (n, C+1, H, W)
+            spec = torch.fft.rfft2(_pad(stack, pad), s=(hp, wp))
+            blurred = _irfft2_crop(spec[:, None] * otf[start:stop, :, None], hp, wp, pad, h, w)  # (n, F, C+1, H, W)
+            colour, cover = blurred[:, :, :c], blurred[:, :, c:].clamp(0.0, 1.0)
+            t = clear_2[sb]
+            num = num.index_add(0, sb, colour * t)
+            den = den.index_add(0, sb, cover * t)
+            new_clear = clear_1.index_copy(0, sb, clear_1[sb] * (1.0 - cover.clamp(max=1.0 - 1e-6)))
+            clear_2, clear_1 = clear_1, new_clear
+        start = stop
+    res = num if not occlusion else num / den.clamp_min(1e-6)
+    return torch.where(planar[:, None, None, None, None], out, res)
 
 
 def defocus_layered(image: torch.Tensor, sigma: torch.Tensor, shape: PSFShape = "gaussian",

@@ -1,0 +1,203 @@
+r"""Randomised lens PSFs for training: shape between Gaussian and pillbox, diffraction, aberration.
+
+Every PSF keeps the tdfd size convention: ``sigma`` is the per-axis RMS radius in pixels
+(:mod:`tdfd.optics.psf`), so ``sigma = mu * r_b`` keeps one meaning for every shape.
+
+* **Shape**: ``"gaussian"`` (paper eq. 7), ``"pillbox"`` (uniform disk of radius
+  ``2 |sigma|``, the geometric blur circle when ``mu = 1 / (2 pitch)``), or a
+  power-exponential ``exp(-(r / alpha)^beta)`` in between (``beta`` 2 to ~16).
+* **Diffraction softening**: the Airy pattern of the aperture, approximated by a Gaussian of
+  RMS ``0.42 lambda N`` (``N = F / A``, the working f-number) in pixels, convolved with the
+  defocus PSF (the RMS radii add in quadrature).
+* **Mild aberration**:
+
+  - astigmatism: the PSF is stretched by ``1 + a`` along an axis at ``angle`` and squeezed
+    by ``1 - a`` across it; the stretch swaps axes on the other side of focus (``a`` takes
+    the sign of ``sigma``), as the sagittal and tangential foci straddle the best focus;
+  - spherical aberration: a radial weight ``1 + s (r^2 / (2 sigma^2) - 1)`` with ``s`` of the
+    sign of ``sigma``: a bright rim on one side of focus, a bright core on the other. The
+    profile is rescaled so that its RMS radius stays ``sigma``.
+
+Kernels are evaluated on a 3x supersampled grid and box-integrated over each pixel; they
+sum to one and collapse to a delta as ``sigma -> 0``.
+
+Example:
+    >>> import torch
+    >>> m = PSFModel(shape="pillbox", astigmatism=0.1, spherical=0.2, diffraction_sigma_px=0.5)
+    >>> k = m.kernels(torch.tensor([0.0, 2.0]))
+    >>> k.shape[0], [round(float(v), 5) for v in k.sum((-1, -2))]
+    (2, [1.0, 1.0])
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+
+from tdfd.errors import InputError
+from tdfd.optics.psf import kernel_size_for, psf_kernel
+from tdfd.optics.render import gaussian_psf_1d
+
+__all__ = ["PSFModel", "diffraction_sigma_px", "batch_kernel_fn"]
+
+
+def diffraction_sigma_px(f_number: float, wavelength_m: float, pixel_pitch_m: float) -> float:
+    """RMS radius (px) of the Gaussian approximation of the Airy pattern: ``0.42 lambda N / pitch``."""
+    return 0.42 * wavelength_m * f_number / pixel_pitch_m
+
+
+def _kurtosis(beta: float) -> float:
+    """``E[r^4] / E[r^2]^2`` of the 2-D profile ``exp(-(r/alpha)^beta)`` (2 Gaussian, 4/3 disk)."""
+    if math.isinf(beta):
+        return 4.0 / 3.0
+    lg = math.lgamma
+    return math.exp(lg(6.0 / beta) + lg(2.0 / beta) - 2.0 * lg(4.0 / beta))
+
+
+@dataclass(frozen=True)
+class PSFModel:
+    """One sample's lens PSF family (see the module documentation).
+
+    Args:
+        shape: ``"gaussian"``, ``"pillbox"``, or a power-exponential exponent ``beta >= 1``.
+        diffraction_sigma_px: RMS radius of the diffraction blur in px (0: none).
+        astigmatism: relative stretch ``a`` in [0, 0.5).
+        astigmatism_angle: axis of the stretch in radians.
+        spherical: spherical-aberration weight ``s`` in (-0.5, 0.5).
+    """
+
+    shape: str | float = "gaussian"
+    diffraction_sigma_px: float = 0.0
+    astigmatism: float = 0.0
+    astigmatism_angle: float = 0.0
+    spherical: float = 0.0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.shape, str):
+            if self.shape not in ("gaussian", "pillbox"):
+                raise InputError(f"PSF shape must be 'gaussian', 'pillbox' or a beta >= 1, got {self.shape!r}")
+        elif not (float(self.shape) >= 1.0 and math.isfinite(float(self.shape))):
+            raise InputError(f"power-exponential beta must be finite and >= 1, got {self.shape}")
+        if not (0 <= self.diffraction_sigma_px and 0 <= self.astigmatism < 0.5 and abs(self.spherical) < 0.5):
+            raise InputError("need diffraction_sigma_px >= 0, 0 <= astigmatism < 0.5, |spherical| < 0.5")
+
+    @property
+    def plain(self) -> bool:
+        """No aberration: the kernels are exactly :func:`tdfd.optics.psf.psf_kernel`'s."""
+        return self.astigmatism == 0 and self.spherical == 0
+
+    @property
+    def beta(self) -> float:
+        """The power-exponential exponent (2 Gaussian, ``inf`` pillbox)."""
+        if self.shape == "gaussian":
+            return 2.0
+        if self.shape == "pillbox":
+            return math.inf
+        return float(self.shape)
+
+    def kernel_size(self, sigma_max: float) -> int:
+        """Odd kernel side that holds the PSF of RMS radius ``sigma_max``."""
+        grow = (1.0 + self.astigmatism) * (1.0 + 0.5 * abs(self.spherical))
+        shape = "pillbox" if self.shape == "pillbox" else "gaussian"
+        size = kernel_size_for(abs(sigma_max) * grow, shape)
+        if self.diffraction_sigma_px > 0:
+            size += 2 * int(math.ceil(3.5 * self.diffraction_sigma_px + 1.0))
+        return size
+
+    def kernels(self, sigma: torch.Tensor, size: int | None = None) -> torch.Tensor:
+        """PSFs ``(N, k, k)`` for signed blurs ``sigma`` ``(N,)`` in px, unit sum."""
+        sigma = sigma.reshape(-1)
+        smax = float(sigma.detach().abs().max()) if sigma.numel() else 0.0
+        size = self.kernel_size(smax) if size is None else int(size)
+        dpad = int(math.ceil(3.5 * self.diffraction_sigma_px + 1.0)) if self.diffraction_sigma_px > 0 else 0
+        core = size - 2 * dpad
+        if self.plain:
+            shape = self.shape if isinstance(self.shape, str) else float(self.shape)
+            k = psf_kernel(sigma, shape, core)
+        else:
+            k = self._aberrated(sigma, core)
+        if dpad:
+            k = _convolve_gaussian(k, self.diffraction_sigma_px, dpad)
+        return k
+
+    def separable_gaussian(self, sigma: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The plain Gaussian PSF (with its diffraction blur) as separable 1-D factors."""
+        if self.shape != "gaussian" or not self.plain:
+            raise InputError("separable kernels exist only for the plain Gaussian")
+        dpad = int(math.ceil(3.5 * self.diffraction_sigma_px + 1.0)) if self.diffraction_sigma_px > 0 else 0
+        k1, _ = gaussian_psf_1d(sigma.reshape(-1), size - 2 * dpad)
+        if dpad:
+            g1, _ = gaussian_psf_1d(torch.tensor([self.diffraction_sigma_px], dtype=k1.dtype), 2 * dpad + 1)
+            k1 = F.conv1d(F.pad(k1[:, None], (2 * dpad, 2 * dpad)), g1[None])[:, 0]  # symmetric kernel: conv == corr
+            k1 = k1 / k1.sum(-1, keepdim=True)
+        return k1, k1
+
+    def _aberrated(self, sigma: torch.Tensor, size: int, ss: int = 3) -> torch.Tensor:
+        n = sigma.numel()
+        sgn = torch.where(sigma < 0, -1.0, 1.0).to(sigma.dtype)
+        s_sph = self.spherical * sgn  # (N,)
+        s_ast = self.astigmatism * sgn
+        kappa = _kurtosis(self.beta)
+        scale = 1.0 / torch.sqrt(1.0 + s_sph * (kappa - 1.0))
+        sig = (sigma.abs() * scale).clamp_min(1e-4)[:, None, None]
+        # supersampled pixel grid (odd ss keeps a sample on each pixel centre)
+        m = size * ss
+        t = (torch.arange(m, dtype=sigma.dtype) - (m - 1) / 2.0) / ss
+        yy, xx = t[:, None], t[None, :]
+        c, s = math.cos(self.astigmatism_angle), math.sin(self.astigmatism_angle)
+        u = (c * xx + s * yy)[None] / (1.0 + s_ast)[:, None, None]
+        v = (c * yy - s * xx)[None] / (1.0 - s_ast)[:, None, None]
+        r2 = u * u + v * v
+        if self.shape == "pillbox":
+            radius = 2.0 * sig
+            prof = ((radius - torch.sqrt(r2)) * ss + 0.5).clamp(0.0, 1.0)
+        elif self.beta == 2.0:
+            prof = torch.exp(-0.5 * r2 / (sig * sig))
+        else:
+            b = self.beta
+            alpha = sig * math.sqrt(2.0 * math.exp(math.lgamma(2.0 / b) - math.lgamma(4.0 / b)))
+            prof = torch.exp(-((torch.sqrt(r2) / alpha) ** b))
+        weight = (1.0 + s_sph[:, None, None] * (r2 / (2.0 * sig * sig) - 1.0)).clamp_min(0.0)
+        k = (prof * weight).reshape(n, size, ss, size, ss).sum((-1, -3))
+        total = k.sum((-1, -2), keepdim=True)
+        delta = torch.zeros_like(k)
+        delta[:, size // 2, size // 2] = 1.0
+        return torch.where(total > 1e-12, k / total.clamp_min(1e-30), delta)
+
+
+def _convolve_gaussian(k: torch.Tensor, sigma_px: float, pad: int) -> torch.Tensor:
+    """Full convolution of kernels ``(N, k, k)`` with a pixel-integrated Gaussian (grows by ``2 pad``)."""
+    g1, _ = gaussian_psf_1d(torch.tensor([sigma_px], dtype=k.dtype), 2 * pad + 1)
+    g1 = g1.reshape(1, 1, -1)
+    x = F.pad(k[:, None], (2 * pad, 2 * pad, 2 * pad, 2 * pad))
+    x = F.conv2d(x, g1[:, :, None, :])
+    x = F.conv2d(x, g1[:, :, :, None])
+    x = x[:, 0]
+    return x / x.sum((-1, -2), keepdim=True)
+
+
+def batch_kernel_fn(models: Sequence[PSFModel]):
+    """A ``kernel_fn`` for :func:`tdfd.optics.render.defocus_layered_multi`: the PSFs of
+    entry ``i`` come from ``models[sample[i]]``; all kernels share one size."""
+
+    def kernel_fn(sigma: torch.Tensor, sample: torch.Tensor):
+        if sigma.numel() == 0:
+            return torch.zeros(0, 1, 1, dtype=sigma.dtype)
+        used = sorted(set(int(i) for i in sample.tolist()))
+        size = max(models[i].kernel_size(float(sigma[sample == i].detach().abs().max())) for i in used)
+        if len(used) == 1:
+            m = models[used[0]]
+            if m.plain and m.shape == "gaussian":
+                return m.separable_gaussian(sigma, size)
+            return m.kernels(sigma, size)
+        out = torch.empty(sigma.numel(), size, size, dtype=sigma.dtype)
+        for i in used:
+            sel = sample == i
+            out[sel] = models[i].kernels(sigma[sel], size)
+        return out
+
+    return kernel_fn
