@@ -115,11 +115,14 @@ class PSFModel:
         size = self.kernel_size(smax) if size is None else int(size)
         dpad = int(math.ceil(3.5 * self.diffraction_sigma_px + 1.0)) if self.diffraction_sigma_px > 0 else 0
         core = size - 2 * dpad
-        if self.plain:
-            shape = self.shape if isinstance(self.shape, str) else float(self.shape)
-            k = psf_kernel(sigma, shape, core)
-        else:
-            k = self._aberrated(sigma, core)
+        if self.plain and isinstance(self.shape, str):
+            k = psf_kernel(sigma, self.shape, core)
+        else:  # power-exponential and/or aberrated: evaluated here (float32-safe, faster)
+            k = torch.empty(sigma.numel(), core, core, dtype=sigma.dtype)
+            small = sigma.abs() < 1.5  # fine supersampling where the PSF is only a few pixels
+            for mask, ss in ((small, 3), (~small, 1)):
+                if bool(mask.any()):
+                    k[mask] = self._aberrated(sigma[mask], core, ss)
         if dpad:
             k = _convolve_gaussian(k, self.diffraction_sigma_px, dpad)
         return k
@@ -137,6 +140,9 @@ class PSFModel:
         return k1, k1
 
     def _aberrated(self, sigma: torch.Tensor, size: int, ss: int = 3) -> torch.Tensor:
+        """Kernels of the (possibly aberrated) profile on an ``ss``-times supersampled grid,
+        box-integrated over pixels (``ss = 1``: pixel-centre samples; the pillbox edge then
+        gets a one-pixel anti-aliasing ramp)."""
         n = sigma.numel()
         sgn = torch.where(sigma < 0, -1.0, 1.0).to(sigma.dtype)
         s_sph = self.spherical * sgn  # (N,)
@@ -144,25 +150,33 @@ class PSFModel:
         kappa = _kurtosis(self.beta)
         scale = 1.0 / torch.sqrt(1.0 + s_sph * (kappa - 1.0))
         sig = (sigma.abs() * scale).clamp_min(1e-4)[:, None, None]
+        if ss == 1 and self.shape != "pillbox":
+            # pixel-centre samples of a smooth profile: add the pixel's 1/12 px^2 of variance
+            # (what box integration adds; the pillbox gets its one-pixel edge ramp instead)
+            sig = torch.sqrt(sig * sig + 1.0 / 12.0)
         # supersampled pixel grid (odd ss keeps a sample on each pixel centre)
         m = size * ss
         t = (torch.arange(m, dtype=sigma.dtype) - (m - 1) / 2.0) / ss
         yy, xx = t[:, None], t[None, :]
-        c, s = math.cos(self.astigmatism_angle), math.sin(self.astigmatism_angle)
-        u = (c * xx + s * yy)[None] / (1.0 + s_ast)[:, None, None]
-        v = (c * yy - s * xx)[None] / (1.0 - s_ast)[:, None, None]
-        r2 = u * u + v * v
+        if self.astigmatism:
+            c, s = math.cos(self.astigmatism_angle), math.sin(self.astigmatism_angle)
+            u = (c * xx + s * yy)[None] / (1.0 + s_ast)[:, None, None]
+            v = (c * yy - s * xx)[None] / (1.0 - s_ast)[:, None, None]
+            r2 = u * u + v * v
+        else:
+            r2 = (xx * xx + yy * yy)[None].expand(n, m, m)
         if self.shape == "pillbox":
-            radius = 2.0 * sig
-            prof = ((radius - torch.sqrt(r2)) * ss + 0.5).clamp(0.0, 1.0)
+            prof = ((2.0 * sig - torch.sqrt(r2)) * ss + 0.5).clamp(0.0, 1.0)
         elif self.beta == 2.0:
             prof = torch.exp(-0.5 * r2 / (sig * sig))
-        else:
+        else:  # exp(-(r / alpha)^beta), computed in logs so that it cannot overflow
             b = self.beta
             alpha = sig * math.sqrt(2.0 * math.exp(math.lgamma(2.0 / b) - math.lgamma(4.0 / b)))
-            prof = torch.exp(-((torch.sqrt(r2) / alpha) ** b))
-        weight = (1.0 + s_sph[:, None, None] * (r2 / (2.0 * sig * sig) - 1.0)).clamp_min(0.0)
-        k = (prof * weight).reshape(n, size, ss, size, ss).sum((-1, -3))
+            expo = (0.5 * b) * (torch.log(r2.clamp_min(1e-30)) - 2.0 * torch.log(alpha))
+            prof = torch.exp(-torch.exp(expo.clamp(max=80.0)))
+        if self.spherical:
+            prof = prof * (1.0 + s_sph[:, None, None] * (r2 / (2.0 * sig * sig) - 1.0)).clamp_min(0.0)
+        k = prof.reshape(n, size, ss, size, ss).sum((-1, -3)) if ss > 1 else prof
         total = k.sum((-1, -2), keepdim=True)
         delta = torch.zeros_like(k)
         delta[:, size // 2, size // 2] = 1.0

@@ -311,17 +311,24 @@ def defocus_layered_multi(image: torch.Tensor, sigma: torch.Tensor, offsets: tor
     spacing, first, last = _layer_grid(float(lo_b[layered].min()), float(hi_b[layered].max()), layer_spacing, max_layers)
     n_layers = last - first + 1
     centres = torch.arange(first, last + 1, dtype=sigma.dtype, device=sigma.device) * spacing  # (L,) near to far
-    t = (sigma - centres[None, :, None, None]) / spacing  # (B, L, H, W)
-    alpha = (1.0 - t.abs()).clamp_min(0.0)
+    # which layers each sample touches: a pixel at u = sigma / spacing - first lies between
+    # layers floor(u) and floor(u) + 1 (weights 1 - frac and frac)
+    u = sigma.detach().reshape(b, -1) / spacing - first
+    k = torch.floor(u).clamp(0, n_layers - 1)
+    k = k.long()
+    rows = torch.arange(b, device=sigma.device)[:, None] * n_layers
+    flags = torch.zeros(b * n_layers, dtype=torch.bool, device=sigma.device)
+    flags[(rows + k).reshape(-1)] = True
+    # the upper neighbour (weight frac; a pixel exactly on a centre adds a weight-0 layer)
+    flags[(rows + (k + 1).clamp_max(n_layers - 1)).reshape(-1)] = True
+    if torch.is_grad_enabled() and sigma.requires_grad:
+        # the layers a pixel touches at weight 0 (the hat's kink) matter for gradients
+        flags[(rows + (k - 1).clamp_min(0)).reshape(-1)] = True
     sel = torch.zeros(b, dtype=torch.bool, device=sigma.device)
     sel[layered] = True
-    if torch.is_grad_enabled() and sigma.requires_grad:
-        # keep layers that a pixel touches at weight 0 too (the hat's kink): the weight's
-        # derivative is not zero there
-        touched = (t.detach().abs() <= 1.0).reshape(b, n_layers, -1).any(-1)
-    else:
-        touched = alpha.detach().reshape(b, n_layers, -1).amax(-1) > 0
-    idx_b, idx_l = (touched & sel[:, None]).nonzero(as_tuple=True)  # layers some pixel falls into
+    touched = flags.reshape(b, n_layers) & sel[:, None]
+    idx_b, idx_l = touched.nonzero(as_tuple=True)  # layers some pixel falls into
+    scaled = sigma / spacing - first  # layer weight of layer l: max(0, 1 - |scaled - l|)
     psf_sigma = centres[idx_l][:, None] + offsets[idx_b]  # (N, F)
     otf, pad, (hp, wp) = _entry_otfs(kernel_fn, psf_sigma, idx_b, (h, w))
     num = image.new_zeros(b, n_frames, c, h, w)
@@ -343,7 +350,7 @@ def defocus_layered_multi(image: torch.Tensor, sigma: torch.Tensor, offsets: tor
                 clear_2 = clear_1
             continue
         sb = idx_b[start:stop]
-        a = alpha[sb, layer][:, None]  # (n, 1, H, W)
+        a = (1.0 - (scaled[sb] - layer).abs()).clamp_min(0.0)  # (n, 1, H, W) hat weights
         if not occlusion:
             blurred = _irfft2_crop(spec_img[sb][:, None] * otf[start:stop, :, None], hp, wp, pad, h, w)
             num = num.index_add(0, sb, blurred * a[:, None])
