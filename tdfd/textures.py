@@ -285,25 +285,27 @@ def dead_leaves(shape: int | Sequence[int], generator: torch.Generator, batch: i
     angle = torch.rand(batch, n, generator=generator, dtype=torch.float64) * (math.pi / 2)
     background = torch.rand(batch, generator=generator)
     out = background[:, None, None, None].expand(batch, 1, h, w).clone()
+    radii_l, cy_l, cx_l, grey_l = radii.tolist(), cy.tolist(), cx.tolist(), grey.tolist()
+    sq_l, ang_l = is_square.tolist(), angle.tolist()
     for b in range(batch):
         img = out[b, 0]
         for i in range(n):
-            r = float(radii[b, i])
-            ext = r * (math.sqrt(2.0) if bool(is_square[b, i]) else 1.0) + 1.0
-            y0, y1 = max(0, int(float(cy[b, i]) - ext)), min(h, int(float(cy[b, i]) + ext) + 1)
-            x0, x1 = max(0, int(float(cx[b, i]) - ext)), min(w, int(float(cx[b, i]) + ext) + 1)
+            r, yc, xc, sq = radii_l[b][i], cy_l[b][i], cx_l[b][i], sq_l[b][i]
+            ext = r * (math.sqrt(2.0) if sq else 1.0) + 1.0
+            y0, y1 = max(0, int(yc - ext)), min(h, int(yc + ext) + 1)
+            x0, x1 = max(0, int(xc - ext)), min(w, int(xc + ext) + 1)
             if y0 >= y1 or x0 >= x1:
                 continue
-            dy = torch.arange(y0, y1, dtype=torch.float32)[:, None] + 0.5 - float(cy[b, i])
-            dx = torch.arange(x0, x1, dtype=torch.float32)[None, :] + 0.5 - float(cx[b, i])
-            if bool(is_square[b, i]):
-                c, s = math.cos(float(angle[b, i])), math.sin(float(angle[b, i]))
+            dy = torch.arange(y0, y1, dtype=torch.float32)[:, None] + (0.5 - yc)
+            dx = torch.arange(x0, x1, dtype=torch.float32)[None, :] + (0.5 - xc)
+            if sq:
+                c, s = math.cos(ang_l[b][i]), math.sin(ang_l[b][i])
                 sd = r - torch.maximum((c * dx + s * dy).abs(), (c * dy - s * dx).abs())
             else:
                 sd = r - torch.sqrt(dy * dy + dx * dx)
             a = _coverage(sd)
             patch = img[y0:y1, x0:x1]
-            img[y0:y1, x0:x1] = patch + a * (float(grey[b, i]) - patch)
+            patch.add_(a * (grey_l[b][i] - patch))
     return out
 
 
@@ -438,11 +440,12 @@ def line_art(shape: int | Sequence[int], generator: torch.Generator, batch: int 
     wd = width[0] + (width[1] - width[0]) * torch.rand(batch, n, generator=generator)
     grey = torch.rand(batch, n, generator=generator) * 0.5
     out = torch.ones(batch, 1, h, w)
+    cy_l, cx_l, ang_l, ln_l, wd_l, grey_l = (t.tolist() for t in (cy, cx, ang, ln, wd, grey))
     for b in range(batch):
         img = out[b, 0]
         for i in range(n):  # painter's order: later strokes on top
-            dy, dx = math.sin(float(ang[b, i])) * float(ln[b, i]), math.cos(float(ang[b, i])) * float(ln[b, i])
-            y_c, x_c, half = float(cy[b, i]), float(cx[b, i]), 0.5 * float(wd[b, i]) + 1.0
+            dy, dx = math.sin(ang_l[b][i]) * ln_l[b][i], math.cos(ang_l[b][i]) * ln_l[b][i]
+            y_c, x_c, half = cy_l[b][i], cx_l[b][i], 0.5 * wd_l[b][i] + 1.0
             y0, y1 = max(0, int(y_c - abs(dy) - half)), min(h, int(y_c + abs(dy) + half) + 1)
             x0, x1 = max(0, int(x_c - abs(dx) - half)), min(w, int(x_c + abs(dx) + half) + 1)
             if y0 >= y1 or x0 >= x1:
@@ -451,9 +454,9 @@ def line_art(shape: int | Sequence[int], generator: torch.Generator, batch: int 
             px = torch.arange(x0, x1, dtype=torch.float32)[None, :] + 0.5
             d = _segment_distance(py, px, torch.tensor(y_c - dy), torch.tensor(x_c - dx), torch.tensor(y_c + dy),
                                   torch.tensor(x_c + dx))
-            a = _coverage(0.5 * float(wd[b, i]) - d)
+            a = _coverage(0.5 * wd_l[b][i] - d)
             patch = img[y0:y1, x0:x1]
-            img[y0:y1, x0:x1] = patch + a * (float(grey[b, i]) - patch)
+            patch.add_(a * (grey_l[b][i] - patch))
     return 1.0 - out if invert else out
 
 

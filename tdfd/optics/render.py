@@ -350,19 +350,25 @@ def defocus_layered_multi(image: torch.Tensor, sigma: torch.Tensor, offsets: tor
                 clear_2 = clear_1
             continue
         sb = idx_b[start:stop]
-        a = (1.0 - (scaled[sb] - layer).abs()).clamp_min(0.0)  # (n, 1, H, W) hat weights
+        every = stop - start == b  # all samples use this layer: plain tensors, no gathers
+        pick = (lambda x: x) if every else (lambda x: x[sb])
+        a = (1.0 - (pick(scaled) - layer).abs()).clamp_min(0.0)  # (n, 1, H, W) hat weights
         if not occlusion:
-            blurred = _irfft2_crop(spec_img[sb][:, None] * otf[start:stop, :, None], hp, wp, pad, h, w)
-            num = num.index_add(0, sb, blurred * a[:, None])
+            blurred = _irfft2_crop(pick(spec_img)[:, None] * otf[start:stop, :, None], hp, wp, pad, h, w)
+            num = num + blurred * a[:, None] if every else num.index_add(0, sb, blurred * a[:, None])
         else:
-            stack = torch.cat([a * image[sb], a], dim=1)  # (n, C+1, H, W)
+            stack = torch.cat([a * pick(image), a], dim=1)  # (n, C+1, H, W)
             spec = torch.fft.rfft2(_pad(stack, pad), s=(hp, wp))
             blurred = _irfft2_crop(spec[:, None] * otf[start:stop, :, None], hp, wp, pad, h, w)  # (n, F, C+1, H, W)
             colour, cover = blurred[:, :, :c], blurred[:, :, c:].clamp(0.0, 1.0)
-            t = clear_2[sb]
-            num = num.index_add(0, sb, colour * t)
-            den = den.index_add(0, sb, cover * t)
-            new_clear = clear_1.index_copy(0, sb, clear_1[sb] * (1.0 - cover.clamp(max=1.0 - 1e-6)))
+            t = pick(clear_2)
+            clear = 1.0 - cover.clamp(max=1.0 - 1e-6)
+            if every:
+                num, den = num + colour * t, den + cover * t
+                new_clear = clear_1 * clear
+            else:
+                num, den = num.index_add(0, sb, colour * t), den.index_add(0, sb, cover * t)
+                new_clear = clear_1.index_copy(0, sb, clear_1[sb] * clear)
             clear_2, clear_1 = clear_1, new_clear
         start = stop
     res = num if not occlusion else num / den.clamp_min(1e-6)
