@@ -166,3 +166,21 @@ def test_export_mode_disables_validation_and_restores_it():
         assert not any(flags()) and not model.training
     assert flags() == before and model.training
     assert len(INPUT_NAMES) == 2 and len(OUTPUT_NAMES) == 3
+
+
+def test_ring_sums_from_coefficients_equal_per_bin_powers():
+    """TileSpectra.ring_weights: the cross terms of +ky/-ky bins cancel in half-plane ring sums,
+    so squared DFT coefficients give the ring powers without per-bin powers (the fast path)."""
+    import torch.nn.functional as F
+
+    from tdfd.dfd import FourierRatioDFD
+
+    analytic = FourierRatioDFD(Camera.preset("reference"), tile=64, stride=32).double()
+    spec = analytic.spectra
+    x = torch.rand(2, 1, 150, 203, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    rings = torch.arange(analytic.min_bin, spec.max_bin + 1)
+    a = spec.coefficients(x)
+    assert a.shape == (2, 4 * (spec.max_bin + 1) ** 2, 3, 5)
+    fast = F.conv2d(a * a, spec.ring_weights(rings)[:, :, None, None])
+    slow = F.conv2d(spec(x), analytic.ring_matrix)
+    torch.testing.assert_close(fast, slow, rtol=1e-12, atol=0.0)

@@ -141,18 +141,41 @@ class TileSpectra(nn.Module):
         # the Laplacian is (2 - shifts along y) + (2 - shifts along x): two separable terms
         return dy * ax + ay * dx + 2.0 * (cy * cx.conj()).real
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def coefficients(self, x: torch.Tensor) -> torch.Tensor:
+        """Windowed DFT products of every tile, before squaring: ``(B, 4 K1^2, h, w)``.
+
+        Channel ``((tx * K1 + kx) * 2 + ty) * K1 + ky`` holds ``sum w(n) w(m) t_y(k_y n) t_x(k_x m) x``
+        with ``t = cos`` for trig index 0 and ``sin`` for 1 (``K1 = max_bin + 1``).
+        """
         if x.ndim != 4 or x.shape[1] != 1:
             raise ShapeError(f"expected (B, 1, H, W), got {tuple(x.shape)}")
         if self.prewhiten:
             x = laplacian_prewhiten(x)
-        k1 = self.max_bin + 1
         kw, kh = self.kernel_w.to(x.dtype), self.kernel_h.to(x.dtype)
         rows = F.conv2d(x, kw, stride=(1, self.stride))  # (B, 2K1, H, w): [cos kx | sin kx]
         b = rows.shape[0]
         # the same column kernels for every row channel: fold channels into the batch
         a = F.conv2d(rows.reshape(-1, 1, rows.shape[2], rows.shape[3]), kh, stride=(self.stride, 1))
-        h, w = a.shape[2], a.shape[3]
+        return a.reshape(b, -1, a.shape[2], a.shape[3])
+
+    def ring_weights(self, rings: torch.Tensor) -> torch.Tensor:
+        """``(R, 4 K1^2)`` weights that turn squared :meth:`coefficients` into ring power sums.
+
+        Summed over the half-plane bins of a ring, the cross terms of the ``+k_y`` and
+        ``-k_y`` powers cancel, so ``sum_{bins in ring} P = sum_c W[r, c] a_c^2`` with weight
+        2 off the axes (both half-plane bins) and 1 on them (``rings``: integer radii).
+        """
+        k1 = self.max_bin + 1
+        kk = torch.arange(k1, dtype=torch.float64)
+        kx, ky = kk[:, None], kk[None, :]  # (kx, ky)
+        member = (torch.round(torch.sqrt(kx ** 2 + ky ** 2))[None] == rings.double()[:, None, None]).double()
+        w = member * torch.where((kx >= 1) & (ky >= 1), 2.0, 1.0)  # (R, kx, ky)
+        return w[:, None, :, None, :].expand(-1, 2, k1, 2, k1).reshape(len(rings), -1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        k1 = self.max_bin + 1
+        a = self.coefficients(x)
+        b, _, h, w = a.shape
         a = a.reshape(b, 2, k1, 2, k1, h, w)  # (x-trig, kx, y-trig, ky, h, w)
         cc, cs = a[:, 0, :, 0], a[:, 1, :, 0]  # y-cos applied to x-cos / x-sin
         sc, ss = a[:, 0, :, 1], a[:, 1, :, 1]  # y-sin applied to x-cos / x-sin
