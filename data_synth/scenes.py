@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from tdfd import Camera
@@ -39,7 +40,7 @@ from tdfd.textures import fractal, random_texture
 
 from .params import SynthConfig, bernoulli, choice, inverse_depth_range, log_uniform, randint, uniform
 
-__all__ = ["Scene", "make_scene", "depth_plane", "depth_slanted", "depth_smooth", "region_shape",
+__all__ = ["Scene", "make_scene", "det_mean", "depth_plane", "depth_slanted", "depth_smooth", "region_shape",
            "draw_illumination"]
 
 
@@ -58,6 +59,13 @@ class Scene:
     depth: torch.Tensor
     layout: str
     params: dict
+
+
+def det_mean(x: torch.Tensor) -> float:
+    """Mean of a tensor in float64 numpy (pairwise summation): the same bits whatever the
+    number of torch threads (torch's parallel reductions are not), so that values derived
+    from it (random ranges, exposure) reproduce exactly in DataLoader workers."""
+    return float(np.mean(x.detach().double().cpu().numpy()))
 
 
 # ----------------------------------------------------------------------------- depth
@@ -254,7 +262,7 @@ def make_scene(g: torch.Generator, cfg: SynthConfig, camera: Camera, size: tuple
             inside = sd > 0
             if not bool(inside.any()):
                 continue
-            q_behind = float(q[inside].mean())
+            q_behind = det_mean(q[inside])
             if bernoulli(g, 0.8):  # usually in front of what it covers
                 q_obj = uniform(g, min(q_behind, q_hi), q_hi)
             else:
@@ -262,7 +270,7 @@ def make_scene(g: torch.Generator, cfg: SynthConfig, camera: Camera, size: tuple
             if bernoulli(g, 0.3):
                 _, a, b, c = _draw_slant(g, q_lo, q_hi, 0.3 * cfg.slant_spread)
                 plane = depth_slanted(h, w, a, b, c)
-                plane = (plane - plane.mean() + q_obj).clamp(q_lo, q_hi)
+                plane = (plane - det_mean(plane) + q_obj).clamp(q_lo, q_hi)
                 sinfo["slanted"] = True
             else:
                 plane = depth_plane(h, w, q_obj)

@@ -41,7 +41,7 @@ from tdfd.sensor import SensorModel
 
 from .params import SynthConfig, draw_psf, draw_sensor, draw_warp, sample_generator, sample_seed
 from .psf import PSFModel, batch_kernel_fn
-from .scenes import Scene, make_scene
+from .scenes import Scene, det_mean, make_scene
 
 __all__ = ["SynthBatchGenerator", "render_frames", "warp_pair", "tile_window", "PARAM_KEYS"]
 
@@ -191,7 +191,7 @@ class SynthBatchGenerator:
             frames = frames.clamp_min(0.0)
             frames[:, 1] *= sparams["frame_gain"]
             # auto-exposure on the sharp radiance: mean frame level ~ target_level
-            mean_rad = float(scene.radiance.mean().clamp_min(1e-6))
+            mean_rad = max(det_mean(scene.radiance), 1e-6)
             exposure = sparams["target_level"] / (mean_rad * sparams["gain"])
             if cfg.noise:
                 sensor = SensorModel(full_well_e=sparams["full_well_e"], read_noise_e=sparams["read_noise_e"],

@@ -25,7 +25,7 @@ import json
 import logging
 import os
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -234,10 +234,6 @@ def contact_sheet(samples: Sequence[dict[str, Any]], path: str | os.PathLike, ca
     fig.savefig(out, dpi=80, metadata={"Software": None})
     plt.close(fig)
     return out
-
-
-def iter_indices(count: int, start: int = 0) -> Iterable[int]:
-    return range(int(start), int(start) + int(count))
 
 
 def manifest(seed: int, count: int, size: tuple[int, int], camera: Camera, config: dict, shards: list[dict],

@@ -53,9 +53,10 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Sequence
 
+import numpy as np
 import torch
 
 from .camera import Camera
@@ -263,7 +264,10 @@ def speckle(shape: Sequence[int], generator: torch.Generator, grain_px: float, b
                            torch.randn(batch, 1, h, w, generator=generator))
     e = torch.fft.ifft2(torch.fft.fft2(field_) * pupil)
     inten = e.real ** 2 + e.imag ** 2
-    return inten / inten.mean((-1, -2), keepdim=True).clamp_min(1e-12)
+    # per-image mean in float64 numpy (pairwise summation): the same bits whatever the
+    # number of torch threads, so a seeded pattern is reproducible everywhere
+    mean = np.mean(inten.detach().double().cpu().numpy().reshape(batch, -1), axis=1)
+    return inten / torch.as_tensor(np.maximum(mean, 1e-12), dtype=inten.dtype).reshape(batch, 1, 1, 1)
 
 
 # ----------------------------------------------------------------------------- modules

@@ -44,7 +44,6 @@ from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 import torch
-import torch.nn.functional as F
 
 from .errors import InputError
 
@@ -66,9 +65,6 @@ __all__ = [
     "gradient",
     "flat",
 ]
-
-Shape = "int | tuple[int, int]"
-
 
 # ----------------------------------------------------------------------------- helpers
 def _hw(shape: int | Sequence[int]) -> tuple[int, int]:
@@ -184,7 +180,6 @@ def bandlimited(shape: int | Sequence[int], generator: torch.Generator, batch: i
 
     x = _spectral_noise(h, w, generator, batch, gain)
     if binary:
-        x = x / x.std((-1, -2), keepdim=True).clamp_min(1e-12)
         med = x.reshape(batch, -1).median(-1).values[:, None, None, None]
         # anti-aliased threshold: the field's gradient converts level to distance in px
         gy, gx = torch.gradient(x, dim=(-2, -1))
