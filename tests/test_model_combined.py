@@ -39,12 +39,16 @@ def test_shapes_any_size(small_model, b, h, w):
     assert bool(torch.isfinite(depth).all() and (depth > 0).all())
 
 
-def test_refinenet_fully_convolutional():
-    net = RefineNet(5, hidden=4, blocks=2)
+@pytest.mark.parametrize("dilation_base", [1, 2])
+def test_refinenet_fully_convolutional(dilation_base):
+    net = RefineNet(5, hidden=4, blocks=3, dilation_base=dilation_base)
     for h, w in [(1, 1), (1, 7), (6, 2)]:
         assert net(torch.randn(2, 5, h, w)).shape == (2, 2, h, w)
+    assert net.config()["dilation_base"] == dilation_base
     with pytest.raises(InputError):
         RefineNet(5, kernel_size=2)
+    with pytest.raises(InputError):
+        RefineNet(5, dilation_base=0)
 
 
 def test_zero_init_reproduces_analytic():

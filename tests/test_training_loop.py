@@ -25,7 +25,8 @@ TINY = [
     "model.tile=32", "model.stride=16", "model.hidden=8", "model.blocks=1",
     "optim.steps=6", "optim.warmup_steps=2", "optim.normaliser_batches=1",
     "log_every=2", "val_every=3", "ckpt_every=2", "threads=1",
-    "eval.distances=2", "eval.samples_per_distance=1", "eval.height=64", "eval.width=64",
+    "eval.bins=2", "eval.samples=4", "eval.textureless_samples=2", "eval.height=64", "eval.width=64",
+    "eval.options={}", 'eval.textureless_options={"textureless_fraction": 1.0}',
 ]
 
 
@@ -50,7 +51,7 @@ def test_end_to_end_writes_logs_checkpoint_model_report(tmp_path):
     assert rows[-1]["val_mre_refined"] and rows[0]["loss"]
     assert summary["steps"] == 6 and "mre_refined" in summary["eval"]
     report = json.loads((out / "report.json").read_text())
-    assert len(report["per_distance"]) == 2 and report["textureless"]["tiles"] > 0
+    assert len(report["per_distance"]) == 2 and report["textureless"]["tiles"] == 2 * 9
     from tdfd.model import DFDModel
 
     model = DFDModel.load(out / "model")

@@ -5,7 +5,7 @@ Examples::
     python -m training --config training/configs/reference.toml
     python -m training --set optim.steps=200 --set out_dir=runs/try --resume
     torchrun --nproc_per_node 2 -m training --config training/configs/reference.toml
-    python -m training --evaluate models/reference --set eval.samples_per_distance=16
+    python -m training --evaluate models/reference --set eval.samples=128
 """
 
 from __future__ import annotations

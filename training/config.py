@@ -22,7 +22,7 @@ from typing import Any, Iterable
 
 from tdfd.errors import InputError
 
-__all__ = ["ConfigError", "DataConfig", "ModelConfig", "OptimConfig", "EvalConfig", "TrainConfig",
+__all__ = ["TEXTURED_FAMILIES", "ConfigError", "DataConfig", "ModelConfig", "OptimConfig", "EvalConfig", "TrainConfig",
            "load_config", "apply_overrides", "config_to_dict", "config_from_dict"]
 
 
@@ -77,6 +77,7 @@ class ModelConfig:
     hidden: int = 32
     blocks: int = 2
     kernel_size: int = 3
+    dilation_base: int = 1
     confidence_scale: float = 0.01
     correction_scale: float = 1.0
 
@@ -107,22 +108,38 @@ class OptimConfig:
     normaliser_batches: int = 4
 
 
+#: Textured texture families (every registered family but the near-uniform ``gradient`` and ``flat``).
+TEXTURED_FAMILIES = ["fractal", "bandlimited", "voronoi", "dead_leaves", "stripes", "checkers", "dots", "line_art",
+                     "glyphs"]
+
+
 @dataclass
 class EvalConfig:
-    """The final evaluation report (per-distance curves on held-out planes).
+    """The final evaluation report: held-out planes, binned by distance.
 
     Attributes:
-        distances: number of plane distances, spread evenly in inverse depth over the range.
-        samples_per_distance: held-out pairs per distance.
+        samples: textured-plane pairs.
+        textureless_samples: texture-less plane pairs (for the confidence check).
+        bins: distance bins, equally spaced in depth over the working range.
         seed: seed of the evaluation scenes (distinct from training and validation).
         height, width: evaluation image size.
+        options: dataset options of the textured planes (``data.options`` are not used).
+        textureless_options: dataset options of the texture-less planes.
+        min_contrast: also report the subset of planes whose texture contrast is at least
+            this (read from the dataset's ``params``; 0 = off).
     """
 
-    distances: int = 8
-    samples_per_distance: int = 8
+    samples: int = 64
+    textureless_samples: int = 16
+    bins: int = 7
     seed: int = 2_000_003
     height: int = 192
     width: int = 192
+    options: dict = field(default_factory=lambda: {"layouts": {"plane": 1.0}, "families": list(TEXTURED_FAMILIES),
+                                                   "illumination_prob": 0.0})
+    textureless_options: dict = field(default_factory=lambda: {"layouts": {"plane": 1.0}, "families": ["flat"],
+                                                               "illumination_prob": 0.0})
+    min_contrast: float = 0.1
 
 
 @dataclass
@@ -328,7 +345,8 @@ def validate_config(cfg: TrainConfig) -> None:
         (cfg.max_minutes >= 0, "max_minutes must be >= 0"),
         (cfg.threads >= 0, "threads must be >= 0"),
         (cfg.device == "auto" or cfg.device == "cpu" or cfg.device.startswith("cuda"), "device must be auto, cpu or cuda[:N]"),
-        (cfg.eval.distances >= 2 and cfg.eval.samples_per_distance >= 1, "eval.distances must be >= 2, eval.samples_per_distance >= 1"),
+        (cfg.eval.bins >= 1 and cfg.eval.samples >= 1 and cfg.eval.textureless_samples >= 0,
+         "eval.bins and eval.samples must be >= 1, eval.textureless_samples >= 0"),
         (cfg.model.confidence_scale > 0 and cfg.model.correction_scale > 0, "model scales must be > 0"),
     ]
     for ok, msg in checks:
