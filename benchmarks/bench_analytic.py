@@ -18,6 +18,7 @@ import torch
 from tdfd import Camera
 from tdfd.dfd import FourierRatioDFD
 from tdfd.optics import camera_sigmas, render_pair
+from tdfd.textures import fractal
 
 from .report import markdown_table, median_time, update_section
 
@@ -26,13 +27,7 @@ DISTANCES = [0.30, 0.35, 0.39, 0.42, 0.45, 0.48, 0.51, 0.54, 0.60, 0.70, 0.80, 0
 
 def pink_texture(n: int, batch: int, generator: torch.Generator) -> torch.Tensor:
     """1/f noise texture in [0.2, 0.8], ``(batch, 1, n, n)``."""
-    f = torch.fft.fftfreq(n, dtype=torch.float64)
-    r = torch.sqrt(f[:, None] ** 2 + f[None, :] ** 2).clamp_min(1.0 / n)
-    spec = torch.complex(torch.randn(batch, n, n, generator=generator, dtype=torch.float64),
-                         torch.randn(batch, n, n, generator=generator, dtype=torch.float64)) / r
-    x = torch.fft.ifft2(spec).real
-    lo, hi = x.amin((1, 2), keepdim=True), x.amax((1, 2), keepdim=True)
-    return (0.2 + 0.6 * (x - lo) / (hi - lo))[:, None].float()
+    return 0.2 + 0.6 * fractal(n, generator, batch, beta=2.0)
 
 
 def accuracy(camera: Camera, configs: dict[str, FourierRatioDFD], scenes: int, size: int, seed: int) -> list[list[object]]:

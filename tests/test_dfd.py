@@ -10,20 +10,14 @@ from tdfd.dfd import FourierRatioDFD, TileSpectra, fft_tile_power, fourier_ratio
 from tdfd.dfd.calibrate import calibrate_mu, mu_from_square_difference, radius_square_difference
 from tdfd.errors import DTypeError, InputError, NonFiniteError, RangeError, ShapeError
 from tdfd.optics import camera_sigmas, render_pair
+from tdfd.textures import fractal
 
 REF = Camera.preset("reference")
 
 
 def pink_texture(n: int, batch: int, seed: int, dtype=torch.float32) -> torch.Tensor:
     """1/f ("natural image") noise texture in [0.2, 0.8], shape (batch, 1, n, n)."""
-    g = torch.Generator().manual_seed(seed)
-    f = torch.fft.fftfreq(n, dtype=torch.float64)
-    r = torch.sqrt(f[:, None] ** 2 + f[None, :] ** 2).clamp_min(1.0 / n)
-    spec = torch.complex(torch.randn(batch, n, n, generator=g, dtype=torch.float64),
-                         torch.randn(batch, n, n, generator=g, dtype=torch.float64)) / r
-    x = torch.fft.ifft2(spec).real
-    lo, hi = x.amin((1, 2), keepdim=True), x.amax((1, 2), keepdim=True)
-    return (0.2 + 0.6 * (x - lo) / (hi - lo))[:, None].to(dtype)
+    return (0.2 + 0.6 * fractal(n, torch.Generator().manual_seed(seed), batch, beta=2.0)).to(dtype)
 
 
 # ---------------------------------------------------------------------------- spectra
@@ -104,8 +98,8 @@ def test_noise_aware_fit_beats_eq13_with_noise():
     for est in ("wls", "eq13"):
         depth, _ = FourierRatioDFD(REF, tile=64, stride=64, estimator=est)(i1, i2)
         err[est] = float(((depth - d).abs() / d).median())
-    assert err["wls"] < 0.05
-    assert err["wls"] < err["eq13"]
+    assert err["wls"] < 0.08, err
+    assert err["wls"] < 0.5 * err["eq13"], err
 
 
 def test_uniform_image_gives_low_confidence_and_finite_depth():
