@@ -12,7 +12,10 @@ machine-vision camera delivers, in this order:
    ``full_well_e``. Poisson is sampled exactly where ``lambda < exact_poisson_below``
    electrons and by its normal approximation ``N(lambda, lambda)`` above (the two agree in
    mean and variance; the approximation's skewness error is below ``1 / sqrt(lambda)``).
-4. **Read noise**: ``+ N(0, read_noise_e^2)`` electrons (input-referred).
+4. **Read noise**: ``+ N(0, read_noise_e^2)`` electrons (input-referred). When no pixel can
+   reach the full well (``lambda + 8 sqrt(lambda) < full_well_e`` everywhere), shot and read
+   noise of the normal-approximated pixels are drawn together as ``N(lambda, lambda + r^2)``
+   (the same distribution, one draw).
 5. **Gain and black level**: ``DN = black_level_dn + gain * e * (white - black) / full_well_e``
    with ``white = 2^bits - 1``; at ``gain = 1`` the full well maps to the white level, a
    higher (analog) gain brightens and clips the ADC before the well is full.
@@ -212,9 +215,20 @@ class SensorModel(nn.Module):
         irr = vignetting(x, self.vignetting) if not _is_zero(self.vignetting) else x
         lam = irr.clamp_min(0.0) * p["exposure"] * p["full_well_e"]
         if self.noise:
-            e = shot_noise(lam, generator, self.exact_poisson_below)
-            e = torch.minimum(e, p["full_well_e"])  # the well overflows: saturation
-            e = e + p["read_noise_e"] * torch.randn(e.shape, generator=generator, dtype=e.dtype, device=e.device)
+            fw, rn = p["full_well_e"], p["read_noise_e"]
+            if bool((lam + 8.0 * torch.sqrt(lam) < fw).all()):
+                # no pixel can fill the well: shot and read noise add as one normal draw,
+                # N(lambda, lambda + r^2), except where Poisson is drawn exactly
+                z = torch.randn(lam.shape, generator=generator, dtype=lam.dtype, device=lam.device)
+                e = lam + torch.sqrt(lam + rn * rn) * z
+                low = lam < self.exact_poisson_below
+                if bool(low.any()):
+                    exact = torch.poisson(lam[low], generator=generator) + (rn.expand_as(lam)[low] * z[low])
+                    e = e.masked_scatter(low, exact)
+            else:
+                e = shot_noise(lam, generator, self.exact_poisson_below)
+                e = torch.minimum(e, fw)  # the well overflows: saturation
+                e = e + rn * torch.randn(e.shape, generator=generator, dtype=e.dtype, device=e.device)
         else:
             e = torch.minimum(lam, p["full_well_e"])
         dn = p["black_level_dn"] + p["dn_per_e"] * e
