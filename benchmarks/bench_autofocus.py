@@ -185,6 +185,15 @@ def main(argv: list[str] | None = None) -> int:
         f"{statistics.median(t_c):.1f} ms.",
     ]
     print("\n".join(checks))
+    fam_rows = []
+    for fam in sorted({r.scene for r in d}):
+        rs = [r for r in d if r.scene == fam]
+        cs = [r for r in main_cfg["contrast"] if r.scene == fam]
+        fam_rows.append([fam, len(rs), sum(1 for r in rs if r.in_focus and r.frames <= 3),
+                         sum(1 for r in rs if r.method != r.requested), sum(1 for r in cs if r.in_focus)])
+    fam_table = markdown_table(["texture family", "trials", "DFD in focus with <= 3 frames", "DFD fall-backs",
+                                "contrast in focus"], fam_rows)
+    print(fam_table)
     notes = [f"DFD: {x}" for x in _failures(d)] + [f"DFD + verify: {x}" for x in _failures(verify_cfg["dfd"])]
     body = f"""
 Estimator: {est_name}. {n} targets across 0.3-1.0 m (stratified, uniform in inverse depth, seed
@@ -212,6 +221,10 @@ power (to the verification frame's arrival with `--verify`). Success: residual b
 {table}
 
 {chr(10).join(checks)}
+
+Per texture family (first configuration):
+
+{fam_table}
 
 {cont_line}
 
