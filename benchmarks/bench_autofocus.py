@@ -102,8 +102,9 @@ def main(argv: list[str] | None = None) -> int:
             **controller: Any) -> dict[str, list]:
         nonlocal compute_ms
         t0 = time.perf_counter()
+        charge = "calibrated" if compute_ms is None else compute_ms / 1e3  # one calibration for every configuration
         with SimBench(estimator=est, timing=timing, seed=args.seed, faults=faults, controller=controller,
-                      contrast=contrast, psf=psf) as bench:
+                      contrast=contrast, psf=psf, compute_s=charge) as bench:
             if compute_ms is None and bench.compute_charge_s != "measured":
                 compute_ms = float(bench.compute_charge_s) * 1e3
             recs = bench.run_trials(subset if subset is not None else depths, methods=methods, uniform=uniform)
@@ -133,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
             q_mid, q_amp = 0.5 * (1 / 0.35 + 1 / 0.9), 0.5 * (1 / 0.35 - 1 / 0.9)
             return 1.0 / (q_mid - q_amp * math.cos(2 * math.pi * t / 4.0))
 
-        with SimBench(estimator=est, seed=args.seed, texture_families=("fractal",)) as bench:
+        with SimBench(estimator=est, seed=args.seed, texture_families=("fractal",),
+                      compute_s=(compute_ms or 0.0) / 1e3) as bench:
             res, frames = bench.run_continuous(schedule, duration_s=4.0)
         live = [f for f in frames if f["tag"] == "live"]
         good = sum(1 for f in live if f["residual_blur_px"] < 1.0)
