@@ -301,6 +301,10 @@ def _run_hardware(args: argparse.Namespace) -> int:
           f"{'-' if res.estimated_depth_m is None else f'{res.estimated_depth_m:.3f} m'}; confidence: "
           f"{'-' if res.confidence is None else f'{res.confidence:.3f}'}; frames: {res.frames}; lens commands: "
           f"{res.lens_commands}; time: {'-' if dt is None else f'{dt * 1e3:.1f} ms'}")
+    if args.continuous and res.history:
+        print(f"{'t ms':>8} {'focus dpt':>9} {'est. m':>7}")
+        for t, power, depth in res.history:
+            print(f"{(t - (res.t_start_s or 0)) * 1e3:8.1f} {power:9.3f} {depth if depth is not None else float('nan'):7.3f}")
     if res.fallback_reason:
         print(f"fell back: {res.fallback_reason}")
     if res.error:
