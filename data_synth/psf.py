@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 
 from tdfd.errors import InputError
-from tdfd.optics.psf import kernel_size_for, psf_kernel
+from tdfd.optics.psf import psf_kernel
 from tdfd.optics.render import gaussian_psf_1d
 
 __all__ = ["PSFModel", "diffraction_sigma_px", "batch_kernel_fn"]
@@ -99,21 +99,27 @@ class PSFModel:
             return math.inf
         return float(self.shape)
 
+    @property
+    def diffraction_pad(self) -> int:
+        """Half-size of the diffraction kernel (3 of its sigmas, at least 1 px; 0 if none)."""
+        return max(1, int(math.ceil(3.0 * self.diffraction_sigma_px))) if self.diffraction_sigma_px > 0 else 0
+
     def kernel_size(self, sigma_max: float) -> int:
-        """Odd kernel side that holds the PSF of RMS radius ``sigma_max``."""
+        """Odd kernel side that holds the PSF of RMS radius ``sigma_max``: the disk of radius
+        ``2 sigma`` plus 1.5 px for the pillbox, ``3 sigma + 1`` px for the smooth shapes
+        (> 99.7 % of a Gaussian's energy per axis, more for ``beta > 2``), grown by the
+        aberration, plus the diffraction kernel."""
         grow = (1.0 + self.astigmatism) * (1.0 + 0.5 * abs(self.spherical))
-        shape = "pillbox" if self.shape == "pillbox" else "gaussian"
-        size = kernel_size_for(abs(sigma_max) * grow, shape)
-        if self.diffraction_sigma_px > 0:
-            size += 2 * int(math.ceil(3.5 * self.diffraction_sigma_px + 1.0))
-        return size
+        s = abs(float(sigma_max)) * grow
+        extent = 2.0 * s + 1.5 if self.shape == "pillbox" else 3.0 * s + 1.0
+        return 2 * int(math.ceil(extent)) + 1 + 2 * self.diffraction_pad
 
     def kernels(self, sigma: torch.Tensor, size: int | None = None) -> torch.Tensor:
         """PSFs ``(N, k, k)`` for signed blurs ``sigma`` ``(N,)`` in px, unit sum."""
         sigma = sigma.reshape(-1)
         smax = float(sigma.detach().abs().max()) if sigma.numel() else 0.0
         size = self.kernel_size(smax) if size is None else int(size)
-        dpad = int(math.ceil(3.5 * self.diffraction_sigma_px + 1.0)) if self.diffraction_sigma_px > 0 else 0
+        dpad = self.diffraction_pad
         core = size - 2 * dpad
         if self.plain and isinstance(self.shape, str):
             k = psf_kernel(sigma, self.shape, core)
@@ -131,7 +137,7 @@ class PSFModel:
         """The plain Gaussian PSF (with its diffraction blur) as separable 1-D factors."""
         if self.shape != "gaussian" or not self.plain:
             raise InputError("separable kernels exist only for the plain Gaussian")
-        dpad = int(math.ceil(3.5 * self.diffraction_sigma_px + 1.0)) if self.diffraction_sigma_px > 0 else 0
+        dpad = self.diffraction_pad
         k1, _ = gaussian_psf_1d(sigma.reshape(-1), size - 2 * dpad)
         if dpad:
             g1, _ = gaussian_psf_1d(torch.tensor([self.diffraction_sigma_px], dtype=k1.dtype), 2 * dpad + 1)
