@@ -50,9 +50,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    if not args.verbose:  # the exporter's optimiser logs every pass at INFO
+    if not args.verbose:  # the exporter logs every pass at INFO and missing torchvision at WARNING
         for name in ("onnx_ir", "onnxscript", "torch.onnx", "torch.export"):
-            logging.getLogger(name).setLevel(logging.WARNING)
+            logging.getLogger(name).setLevel(logging.ERROR)
     from tdfd.errors import TdfdError
 
     from .onnx_export import export_model

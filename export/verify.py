@@ -10,8 +10,9 @@ r"""Verify an exported ONNX model: checker, contract, and ONNX Runtime versus to
    rendered pairs (:func:`realistic_pairs`: procedural ``1/f`` textures with edges, two
    depth planes per sample, sensor noise) at several image sizes, including sizes that are
    no multiple of the stride, and several batch sizes. ``depth`` and ``depth_analytic``
-   must agree within ``rtol`` (relative, default ``1e-4``), ``confidence`` within
-   ``conf_atol`` (absolute; it lies in [0, 1]).
+   must agree within ``rtol`` (relative, default ``1e-4``) in every tile with confidence
+   >= 0.05 and within ``rtol_all`` (1e-3) in every tile; ``confidence`` within
+   ``conf_atol`` (absolute, 1e-3; see the note of :func:`verify_onnx`).
 
 Any failure raises :class:`tdfd.errors.ModelError` whose message names the check, and
 for parity the worst discrepancy (size, batch, output, tile, both values).
@@ -220,6 +221,7 @@ class ParityReport:
     rtol: float = 1e-4
     conf_atol: float = 1e-3
     rtol_all: float = 1e-3
+    min_confidence: float = 0.05
 
     @property
     def worst_depth_rel(self) -> float:
@@ -235,9 +237,9 @@ class ParityReport:
             lines.append(f"  {c.size[0]}x{c.size[1]} batch {c.batch}: depth rel {c.depth_rel:.2e} "
                          f"(all tiles {c.depth_rel_all:.2e}), depth_analytic rel {c.depth_analytic_rel:.2e} "
                          f"(all {c.depth_analytic_rel_all:.2e}), confidence abs {c.confidence_abs:.2e}; "
-                         f"{c.trusted_fraction:.0%} of tiles with confidence >= 0.01")
+                         f"{c.trusted_fraction:.0%} of tiles with confidence >= {self.min_confidence:g}")
         if self.cases:
-            lines.append(f"  parity OK (depth rtol {self.rtol:g} where confidence >= 0.01, {self.rtol_all:g} "
+            lines.append(f"  parity OK (depth rtol {self.rtol:g} where confidence >= {self.min_confidence:g}, {self.rtol_all:g} "
                          f"elsewhere; confidence atol {self.conf_atol:g})")
         return "\n".join(lines)
 
@@ -251,7 +253,7 @@ def _session(path: Path, threads: int, optimization: str):
 def verify_onnx(path: str | Path, model: nn.Module | None = None,
                 sizes: Sequence[tuple[int, int]] = DEFAULT_SIZES, batches: Sequence[int] = DEFAULT_BATCHES,
                 rtol: float = 1e-4, conf_atol: float = 1e-3, threads: int = 2, seed: int = 0,
-                optimization: str | None = None, min_confidence: float = 0.01, rtol_all: float = 1e-3) -> ParityReport:
+                optimization: str | None = None, min_confidence: float = 0.05, rtol_all: float = 1e-3) -> ParityReport:
     """Check an exported file and its agreement with the torch model.
 
     Args:
@@ -278,11 +280,14 @@ def verify_onnx(path: str | Path, model: nn.Module | None = None,
             or disagrees with the model (the worst discrepancy is in the message).
 
     Note:
-        ONNX Runtime and torch both compute in float32 but sum in different orders. In
-        tiles the model itself flags as unusable (confidence < 0.01: the fit rests on
-        rings at the noise floor) the analytic fit amplifies that rounding to ~1e-4
-        relative; torch float32 differs from torch float64 by as much there. Those tiles
-        are held to ``rtol_all`` instead of ``rtol``.
+        ONNX Runtime and torch both compute in float32 but sum in different orders. The
+        Laplacian pre-whitening leaves the lowest rings with few significant bits, and in
+        tiles whose fit rests on them (weak texture: the model's confidence is low) the
+        analytic fit amplifies that rounding to ~1e-4 relative; torch float32 differs from
+        torch float64 by as much there. The discrepancy falls with the confidence (about
+        5e-5 below 0.05, 2e-5 from 0.05 to 0.2, 5e-6 above 0.5 on rendered scenes), so
+        tiles below ``min_confidence`` (default 0.05: a predicted relative error above
+        ~4%) are held to ``rtol_all`` instead of ``rtol``.
     """
     path = Path(path)
     if not path.is_file():
@@ -296,7 +301,8 @@ def verify_onnx(path: str | Path, model: nn.Module | None = None,
     except (onnx.checker.ValidationError, onnx.shape_inference.InferenceError) as exc:
         raise ModelError(f"{path} fails onnx.checker (full check): {exc}") from exc
     metadata = check_contract(proto, model)
-    report = ParityReport(path=path, metadata=metadata, rtol=rtol, conf_atol=conf_atol, rtol_all=rtol_all)
+    report = ParityReport(path=path, metadata=metadata, rtol=rtol, conf_atol=conf_atol, rtol_all=rtol_all,
+                          min_confidence=min_confidence)
     if model is None:
         return report
     from tdfd.runtime import DEFAULT_OPTIMIZATION
