@@ -50,6 +50,33 @@ def time_calls(fns: dict[str, object], repeats: int, warmup: int = 5) -> dict[st
     return times
 
 
+def _other_benchmarks() -> list[str]:
+    """Command lines of other running ``benchmarks.*`` processes (they would skew the timings)."""
+    mine = {os.getpid(), os.getppid()}
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) in mine:
+            continue
+        try:
+            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if "python" in cmd and ("-m benchmarks" in cmd or "benchmarks/" in cmd) and "bench_onnx" not in cmd:
+            found.append(cmd.strip())
+    return found
+
+
+def wait_for_quiet(max_load: float, timeout_s: float) -> float:
+    """Wait until the 1-min load average is below ``max_load`` and no other benchmark runs
+    (at most ``timeout_s``); returns the seconds waited."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        if os.getloadavg()[0] < max_load and not _other_benchmarks():
+            break
+        time.sleep(5.0)
+    return time.monotonic() - t0
+
+
 def _load_model(weights: Path | None):
     from export.testing import make_test_model
     from tdfd.model import DFDModel
@@ -68,7 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--no-torch", action="store_true", help="time ONNX Runtime only")
     p.add_argument("--wait-load", type=float, default=None,
-                   help="before each size, wait (up to --wait-max s) until the 1-min load average is below this")
+                   help="before each size, wait (up to --wait-max s) until the 1-min load average is below this "
+                        "and no other benchmarks.* process runs")
     p.add_argument("--wait-max", type=float, default=600.0)
     p.add_argument("--no-write", action="store_true", help="print only; do not update docs/BENCHMARKS.md")
     args = p.parse_args(argv)
@@ -104,9 +132,8 @@ def main(argv: list[str] | None = None) -> int:
             fns["torch eager"] = eager
         reps = args.repeats if h * w <= 480 * 640 else max(20, args.repeats // 4)
         if args.wait_load is not None:
-            t_end = time.monotonic() + args.wait_max
-            while os.getloadavg()[0] > args.wait_load and time.monotonic() < t_end:
-                time.sleep(5.0)
+            waited = wait_for_quiet(args.wait_load, args.wait_max)
+            print(f"waited {waited:.0f} s for load < {args.wait_load:g} (now {os.getloadavg()[0]:.2f})")
         loads.append(os.getloadavg()[0])
         times = time_calls(fns, reps)
         for k, ts in times.items():
