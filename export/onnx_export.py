@@ -9,9 +9,10 @@ The graph is captured with ``torch.export`` (``dynamo=True``) with symbolic batc
 and width; the tile-grid arithmetic (``h = (H - tile) // stride + 1``) stays symbolic
 because the analytic layer computes it with strided convolutions, slices and reshapes
 only. Input validation is switched off while exporting (the runtime validates on the
-device, :mod:`tdfd.runtime`). The ONNX optimiser (``optimize=True``) is safe for the
-analytic layer: every epsilon it adds is ``>= 1e-6`` (see the exporter's constant folding
-note in ``docs``); :func:`export.verify.verify_onnx` checks parity either way.
+device, :mod:`tdfd.runtime`). The ONNX optimiser (``optimize=True``) folds ``x + c`` away
+for ``|c| <= 1e-8`` and multiplications by constants within ``1e-5`` of 1; the analytic
+layer's epsilons are ``>= 1e-6`` in float32, and :func:`export.verify.verify_onnx` checks
+parity either way (export with ``optimize=False`` if a model needs smaller constants).
 
 Example:
     >>> import tempfile, pathlib, onnx
