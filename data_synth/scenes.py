@@ -277,14 +277,22 @@ def make_scene(g: torch.Generator, cfg: SynthConfig, camera: Camera, size: tuple
                 sinfo["slanted"] = False
             sinfo["inverse_depth"] = q_obj
             q = torch.where(inside, plane, q)
+            cover = (sd + 0.5).clamp(0.0, 1.0)
+            # the object's bounding box: its own texture is only synthesised there
+            rows = (cover[0, 0] > 0).any(1).nonzero()
+            cols = (cover[0, 0] > 0).any(0).nonzero()
+            y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+            box = (slice(None), slice(None), slice(y0, y1), slice(x0, x1))
             if bernoulli(g, 0.75):
-                tex, tinfo = _texture(g, size, cfg, textureless)
+                tex, tinfo = _texture(g, (max(8, y1 - y0), max(8, x1 - x0)), cfg, textureless)
+                tex = tex[..., : y1 - y0, : x1 - x0]
                 textures.append(tinfo)
             else:  # same material, different shade
-                tex = albedo * uniform(g, 0.3, 1.0)
+                tex = albedo[box] * uniform(g, 0.3, 1.0)
                 sinfo["texture"] = "shared"
-            cover = (sd + 0.5).clamp(0.0, 1.0)
-            albedo = albedo + cover * (tex - albedo)
+            patch = albedo[box]
+            albedo = albedo.clone()
+            albedo[box] = patch + cover[box] * (tex - patch)
             objects.append(sinfo)
     depth = 1.0 / q
     pattern = None

@@ -14,6 +14,14 @@ Two operations, both batched and differentiable with respect to the image, the b
   other do not occlude one another, so a plane between two layer centres is rendered as an
   interpolation of the two blurs without self-occlusion.
 
+* :func:`defocus_layered_multi`: the same layered render for several focus settings at once
+  (the two DFD frames differ by a constant blur offset, paper eq. 6, so they share the layer
+  decomposition and its forward FFTs), with custom PSF kernels, an exact single-PSF path
+  for constant maps and a cheaper non-occluding "gather" mode for smooth depth maps.
+  :func:`defocus_layered` and :func:`render_pair` run on it. Layers no pixel falls into are
+  skipped and the layers are streamed near to far, so a render costs about one forward FFT
+  per used layer and one inverse FFT per used layer and frame and channel.
+
 Convolutions run in the Fourier domain on a reflect-padded image (linear, not circular,
 convolution inside the output), so large blurs cost no more than small ones.
 
@@ -433,7 +441,11 @@ def render_pair(camera: Camera, sharp: torch.Tensor, depth_m: torch.Tensor, shap
     """The DFD pair ``(image_f1, image_f2)`` at the camera's two ECVFL powers (noise-free).
 
     Both frames share one layer decomposition (their blur maps differ by a constant,
-    paper eq. 6), rendered in one pass by :func:`defocus_layered_multi`.
+    paper eq. 6), rendered in one pass by :func:`defocus_layered_multi`: ``image_f1`` equals
+    :func:`render_at_power` at the first power; ``image_f2`` differs from it at the second
+    power only by where the layer interpolation falls (within the layering accuracy, and the
+    same interpolation error in both frames). Constant-depth samples take the exact uniform
+    path for both frames.
     """
     p1, p2 = camera.lens_powers_dpt
     _check_image(sharp, "sharp")
@@ -449,6 +461,6 @@ def render_pair(camera: Camera, sharp: torch.Tensor, depth_m: torch.Tensor, shap
     if bool((flat.amax(1) == flat.amin(1)).all()) or float((diff.detach().amax(1) - diff.detach().amin(1)).max()) > tol:
         return (render_at_power(camera, sharp, depth_m, p1, shape, mu, layer_spacing),
                 render_at_power(camera, sharp, depth_m, p2, shape, mu, layer_spacing))
-    offsets = torch.stack([torch.zeros_like(diff[:, 0]), diff.mean(1)], dim=1)
+    offsets = torch.stack([torch.zeros_like(diff[:, 0]), diff[:, 0]], dim=1)  # constant within `tol`
     out = defocus_layered_multi(sharp, s1, offsets, shape, layer_spacing)
     return out[:, 0], out[:, 1]
