@@ -36,7 +36,6 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import torch
-import torch.nn.functional as F
 
 from tdfd.errors import InputError
 from tdfd.optics.psf import psf_kernel
@@ -141,7 +140,7 @@ class PSFModel:
         k1, _ = gaussian_psf_1d(sigma.reshape(-1), size - 2 * dpad)
         if dpad:
             g1, _ = gaussian_psf_1d(torch.tensor([self.diffraction_sigma_px], dtype=k1.dtype), 2 * dpad + 1)
-            k1 = F.conv1d(F.pad(k1[:, None], (2 * dpad, 2 * dpad)), g1[None])[:, 0]  # symmetric kernel: conv == corr
+            k1 = _full_conv_1d(k1, g1[0], -1)
             k1 = k1 / k1.sum(-1, keepdim=True)
         return k1, k1
 
@@ -189,14 +188,22 @@ class PSFModel:
         return torch.where(total > 1e-12, k / total.clamp_min(1e-30), delta)
 
 
+def _full_conv_1d(x: torch.Tensor, taps: torch.Tensor, dim: int) -> torch.Tensor:
+    """Full 1-D convolution of ``x`` along ``dim`` with a short symmetric kernel ``taps``
+    (a few shifted copies: no convolution primitive to build for every new shape)."""
+    n = taps.numel()
+    shape = list(x.shape)
+    shape[dim] += n - 1
+    out = x.new_zeros(shape)
+    for j, w in enumerate(taps.tolist()):
+        out.narrow(dim, j, x.shape[dim]).add_(x, alpha=w)
+    return out
+
+
 def _convolve_gaussian(k: torch.Tensor, sigma_px: float, pad: int) -> torch.Tensor:
     """Full convolution of kernels ``(N, k, k)`` with a pixel-integrated Gaussian (grows by ``2 pad``)."""
     g1, _ = gaussian_psf_1d(torch.tensor([sigma_px], dtype=k.dtype), 2 * pad + 1)
-    g1 = g1.reshape(1, 1, -1)
-    x = F.pad(k[:, None], (2 * pad, 2 * pad, 2 * pad, 2 * pad))
-    x = F.conv2d(x, g1[:, :, None, :])
-    x = F.conv2d(x, g1[:, :, :, None])
-    x = x[:, 0]
+    x = _full_conv_1d(_full_conv_1d(k, g1[0], -1), g1[0], -2)
     return x / x.sum((-1, -2), keepdim=True)
 
 

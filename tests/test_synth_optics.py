@@ -18,6 +18,15 @@ CAM = Camera.preset("reference")
 N = 65
 
 
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Small tensors: one intra-op thread is faster, and immune to other load on the cores."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def _point(dtype=torch.float64):
     x = torch.zeros(1, 1, N, N, dtype=dtype)
     x[..., N // 2, N // 2] = 1.0
