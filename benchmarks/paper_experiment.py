@@ -87,9 +87,9 @@ def run_camera(camera: Camera, size: tuple[int, int], tile: int, max_bin: int, s
     g = torch.Generator().manual_seed(seed)
     # calibrate mu from the coherent pair at 46 cm, as in the paper
     cal = [crop(t) for t in capture(camera, sources["coherent"], CALIBRATION_CM / 100, size, g, sensor, optics)]
-    mu = calibrate_mu(camera, [(cal[0], cal[1], CALIBRATION_CM / 100)], tile=tile, max_bin=max_bin)
+    mu = calibrate_mu(camera, [(cal[0], cal[1], CALIBRATION_CM / 100)], tile=tile, max_bin=max_bin, gate_sharpness=8.0)
     cam = camera.replace(mu_px_per_m=mu)
-    est = FourierRatioDFD(cam, tile=tile, stride=tile, max_bin=max_bin)
+    est = FourierRatioDFD(cam, tile=tile, stride=tile, max_bin=max_bin, gate_sharpness=8.0)  # one large region: sharp gate
     out: dict[str, dict[float, list[float]]] = {"mu": {0.0: [mu]}}
     for name, src in sources.items():
         out[f"{name} analytic"] = {}
