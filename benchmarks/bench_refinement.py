@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(2)
     model = DFDModel.load(args.model)
     ev = EvalConfig(samples=args.samples, textureless_samples=args.textureless, seed=BENCH_SEED, height=args.size,
-                    width=args.size)
+                    width=args.size, min_contrast=0.1, min_signal_e=2000.0)
     t0 = time.perf_counter()
     result = evaluate_model(model, DataConfig(), _model_cfg(model), ev)
     wall = time.perf_counter() - t0
@@ -75,27 +75,34 @@ def main(argv: list[str] | None = None) -> int:
     png = ROOT / "docs" / "refinement_error.png"
     png.parent.mkdir(parents=True, exist_ok=True)
     plot_report(result, png, f"Refinement on held-out data_synth planes ({Path(args.model).name})")
-    cs = result.get("contrast_subset") or {}
+    subs = {sub["name"]: sub for sub in result["subsets"]}
     t = result.get("textureless") or {}
-    targets = markdown_table(["requirement", "target", "measured", "met"], [
-        ["refined median abs. rel. error, textured planes 0.3-1.0 m", "<= 1 %", f"{100 * s['mre_refined']:.2f} %",
-         "yes" if s["mre_refined"] <= 0.01 else "**no**"],
-        ["... with texture contrast >= 0.1", "<= 1 %", f"{100 * cs.get('mre_refined', float('nan')):.2f} %",
-         "yes" if cs.get("mre_refined", 1) <= 0.01 else "**no**"],
-        ["improvement over analytic (same tiles)", ">= 3x", f"{s['improvement']:.2f}x",
-         "yes" if s["improvement"] >= 3 else "**no**"],
+    rows = [["refined median abs. rel. error, textured planes 0.3-1.0 m (all tiles)", "<= 1 %",
+             f"{100 * s['mre_refined']:.2f} %", "yes" if s["mre_refined"] <= 0.01 else "**no**"]]
+    for sub in result["subsets"]:
+        rows.append([f"... {sub['name']} ({100 * sub['fraction']:.0f} % of tiles)", "<= 1 %",
+                     f"{100 * sub['mre_refined']:.2f} %", "yes" if sub["mre_refined"] <= 0.01 else "**no**"])
+    rows.append(["improvement over analytic, all tiles", ">= 3x", f"{s['improvement']:.2f}x",
+                 "yes" if s["improvement"] >= 3 else "**no**"])
+    for sub in result["subsets"][:2]:
+        rows.append([f"... {sub['name']}", ">= 3x", f"{sub['improvement']:.2f}x", "yes" if sub["improvement"] >= 3 else "**no**"])
+    rows += [
         ["error falls as confidence rises", "monotone", "monotone" if s["error_falls_with_confidence"] else "not monotone",
          "yes" if s["error_falls_with_confidence"] else "**no**"],
-        ["texture-less tiles' confidence", "< 0.1", f"max {t.get('conf_max', float('nan')):.3f}, "
-         f"{100 * t.get('frac_below_0.1', float('nan')):.1f} % below 0.1",
-         "yes" if t.get("conf_max", 1) < 0.1 else "**no**"],
-    ])
+        ["texture-less tiles' confidence", "< 0.1", f"max {t.get('conf_max', float('nan')):.4f}, "
+         f"{100 * t.get('frac_below_0.1', float('nan')):.1f} % below 0.1", "yes" if t.get("conf_max", 1) < 0.1 else "**no**"],
+    ]
+    del subs
+    targets = markdown_table(["requirement", "target", "measured", "met"], rows)
     body = (f"Model `{Path(args.model).name}` ({timing['cnn_params']} CNN parameters) on {args.samples} held-out "
-            f"`data_synth` textured planes of {args.size}x{args.size} px (seed {BENCH_SEED}; uniform in inverse depth, "
-            "ambient light, the synthesiser's sensor noise: 8-12 bit, 3k-40k e- full well, gain 1-4, mean level "
-            "0.08-0.6; PSF drawn per sample among Gaussian, pillbox and power-exponential with diffraction and mild "
-            f"aberration; focus breathing and sub-pixel misregistration as in training) and {args.textureless} "
-            "texture-less (`flat`) planes. Errors are medians of |d - d_true| / d_true over 64-px tiles (stride 32) "
+            f"`data_synth` fronto-parallel textured planes of {args.size}x{args.size} px (seed {BENCH_SEED}, which no "
+            "training run uses; depth uniform in inverse depth over the range widened by 10 %; every textured family "
+            "of `tdfd.textures`, contrast log-uniform in [0.03, 1]; ambient light) with the synthesiser's default "
+            "realism: sensor noise (Poisson-Gaussian, 8/10/12-bit, 3k-40k e- full well, 1-8 e- read noise, gain 1-4, "
+            "mean level 0.08-0.6, 8 % over-exposed, vignetting, 2 % frame gain jitter), a PSF drawn per sample "
+            "(Gaussian, pillbox or power-exponential beta 2.5-16, with diffraction and mild aberration), focus "
+            f"breathing up to 1 % and sub-pixel misregistration; plus {args.textureless} texture-less (`flat`) planes. "
+            "Errors are medians of |d - d_true| / d_true over 64-px tiles (stride 32) "
             "whose true depth lies in 0.3-1.0 m.\n\n" + targets + "\n\n" + report_markdown(result, None)
             + f"\n![refinement error](refinement_error.png)\n\n"
             f"Cost (torch, 2 threads, one 480x640 pair, grid {timing['grid'][0]}x{timing['grid'][1]}): whole model "

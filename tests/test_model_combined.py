@@ -115,6 +115,10 @@ def test_save_load_round_trip(tmp_path):
     for a, b in zip(model(i1, i2), loaded(i1, i2)):
         assert torch.equal(a, b)
     assert loaded.confidence_scale == 0.02
+    assert loaded.analytic_matches is True
+    cfg["analytic_fingerprint"][0] += 1.0  # as if the analytic layer had changed since training
+    m.write_text(json.dumps(cfg))
+    assert DFDModel.load(tmp_path / "m").analytic_matches is False
 
 
 def test_load_errors(tmp_path):

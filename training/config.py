@@ -127,6 +127,8 @@ class EvalConfig:
         textureless_options: dataset options of the texture-less planes.
         min_contrast: also report the subset of planes whose texture contrast is at least
             this (read from the dataset's ``params``; 0 = off).
+        min_signal_e: and the subset of those with at least this many mean photo-electrons
+            per pixel (0 = off).
     """
 
     samples: int = 64
@@ -140,6 +142,7 @@ class EvalConfig:
     textureless_options: dict = field(default_factory=lambda: {"layouts": {"plane": 1.0}, "families": ["flat"],
                                                                "illumination_prob": 0.0})
     min_contrast: float = 0.1
+    min_signal_e: float = 0.0
 
 
 @dataclass

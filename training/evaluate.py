@@ -40,6 +40,14 @@ logger = logging.getLogger(__name__)
 CONF_EDGES = (0.0, 0.1, 0.3, 0.5, 0.7, 0.9, 1.0)
 
 
+def _signal_e(params: Any) -> float:
+    """Mean photo-electrons per pixel of a ``data_synth`` sample (``nan`` if unknown)."""
+    try:
+        return float(params["target_level"]) * float(params["full_well_e"]) / float(params["gain"])
+    except (KeyError, TypeError, ValueError, ZeroDivisionError):
+        return float("nan")
+
+
 def _contrast(params: Any) -> float:
     """Texture contrast of a ``data_synth`` sample (``nan`` when the dataset does not say)."""
     try:
@@ -56,11 +64,12 @@ def collect(model: DFDModel, dataset: Any, count: int, chunk: int = 8) -> dict[s
 
     Returns:
         ``true``, ``refined``, ``analytic`` depths (m), ``confidence``, and per tile the
-        sample's texture ``contrast`` and PSF shape id (``psf``: 0 Gaussian, 1 pillbox,
+        sample's texture ``contrast``, mean photo-electrons ``signal_e`` and PSF shape id (``psf``: 0 Gaussian, 1 pillbox,
         2 other).
     """
     model = model.eval()
-    out: dict[str, list[torch.Tensor]] = {k: [] for k in ("true", "refined", "analytic", "confidence", "contrast", "psf")}
+    out: dict[str, list[torch.Tensor]] = {k: [] for k in ("true", "refined", "analytic", "confidence", "contrast",
+                                                         "signal_e", "psf")}
     for start in range(0, count, chunk):
         batch = fetch_batch(dataset, list(range(start, min(count, start + chunk))))
         depth, conf, depth_a = model(batch["image_f1"].float(), batch["image_f2"].float())
@@ -72,9 +81,20 @@ def collect(model: DFDModel, dataset: Any, count: int, chunk: int = 8) -> dict[s
         out["analytic"].append(depth_a.flatten())
         out["confidence"].append(conf.flatten())
         out["contrast"].append(torch.tensor([_contrast(p) for p in params]).repeat_interleave(tiles))
+        out["signal_e"].append(torch.tensor([_signal_e(p) for p in params]).repeat_interleave(tiles))
         shapes = [str(p.get("psf_shape", "")) if isinstance(p, dict) else "" for p in params]
         out["psf"].append(torch.tensor([{"gaussian": 0, "pillbox": 1}.get(s, 2) for s in shapes]).repeat_interleave(tiles))
     return {k: torch.cat(v) for k, v in out.items()}
+
+
+def _spearman(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Spearman rank correlation of two 1-D tensors (``nan`` if fewer than 3 values)."""
+    if a.numel() < 3:
+        return float("nan")
+    ra = torch.argsort(torch.argsort(a)).double()
+    rb = torch.argsort(torch.argsort(b)).double()
+    ra, rb = ra - ra.mean(), rb - rb.mean()
+    return float((ra * rb).sum() / (ra.norm() * rb.norm()).clamp_min(1e-12))
 
 
 def _median(x: torch.Tensor) -> float | None:
@@ -82,8 +102,14 @@ def _median(x: torch.Tensor) -> float | None:
 
 
 def summarise(tiles: dict[str, torch.Tensor], camera_range: tuple[float, float], bins: int,
-              textureless_conf: torch.Tensor | None = None, min_contrast: float = 0.0) -> dict[str, Any]:
-    """Per-distance, per-confidence and texture-less statistics from :func:`collect` output."""
+              textureless_conf: torch.Tensor | None = None, min_contrast: float = 0.0,
+              min_signal_e: float = 0.0) -> dict[str, Any]:
+    """Per-distance, per-confidence and texture-less statistics from :func:`collect` output.
+
+    Subsets reported besides all tiles: planes with texture contrast >= ``min_contrast``
+    (if > 0), those also with >= ``min_signal_e`` mean photo-electrons (if > 0), and tiles
+    with confidence >= 0.5.
+    """
     near, far = camera_range
     t = tiles["true"]
     in_range = (t >= near) & (t <= far)
@@ -106,6 +132,7 @@ def summarise(tiles: dict[str, torch.Tensor], camera_range: tuple[float, float],
                           "p90_refined": float(er[m].quantile(0.9)) if n else None})
     filled = [b for b in conf_bins if b["tiles"] >= 20]
     monotone = all(a["mre_refined"] >= b["mre_refined"] for a, b in zip(filled[:-1], filled[1:]))
+    rho = _spearman(c[in_range], er[in_range])
     overall_r, overall_a = _median(er[in_range]), _median(ea[in_range])
     by_bin_r = [r["mre_refined"] for r in per_distance if r["mre_refined"] is not None]
     by_bin_a = [r["mre_analytic"] for r in per_distance if r["mre_analytic"] is not None]
@@ -115,7 +142,9 @@ def summarise(tiles: dict[str, torch.Tensor], camera_range: tuple[float, float],
         "mean_of_bins_refined": sum(by_bin_r) / len(by_bin_r) if by_bin_r else None,
         "mean_of_bins_analytic": sum(by_bin_a) / len(by_bin_a) if by_bin_a else None,
         "worst_bin_refined": max(by_bin_r) if by_bin_r else None,
-        "error_falls_with_confidence": bool(monotone),
+        "error_falls_with_confidence": bool(rho < 0 and filled and filled[0]["mre_refined"] > filled[-1]["mre_refined"]),
+        "confidence_bins_monotone": bool(monotone),
+        "spearman_conf_error": rho,
     }
     by_psf = {}
     for pid, name in ((0, "gaussian"), (1, "pillbox"), (2, "other")):
@@ -124,14 +153,21 @@ def summarise(tiles: dict[str, torch.Tensor], camera_range: tuple[float, float],
             by_psf[name] = {"tiles": int(m.sum()), "mre_refined": _median(er[m]), "mre_analytic": _median(ea[m])}
     result: dict[str, Any] = {"per_distance": per_distance, "confidence_bins": conf_bins, "by_psf": by_psf,
                               "summary": summary}
+    subsets = []
     if min_contrast > 0:
-        m = in_range & (tiles["contrast"] >= min_contrast)
-        if int(m.sum()):
-            r, a = _median(er[m]), _median(ea[m])
-            result["contrast_subset"] = {"min_contrast": min_contrast, "tiles": int(m.sum()), "mre_refined": r,
-                                         "mre_analytic": a, "improvement": a / max(r, 1e-12)}
-            summary["mre_refined_contrast"] = r
-            summary["mre_analytic_contrast"] = a
+        subsets.append((f"texture contrast >= {min_contrast:g}", tiles["contrast"] >= min_contrast))
+        if min_signal_e > 0:
+            subsets.append((f"texture contrast >= {min_contrast:g} and >= {min_signal_e:g} e- per pixel",
+                            (tiles["contrast"] >= min_contrast) & (tiles["signal_e"] >= min_signal_e)))
+    subsets.append(("confidence >= 0.5", c >= 0.5))
+    result["subsets"] = []
+    for name, sel in subsets:
+        m = in_range & sel
+        n = int(m.sum())
+        r, a = _median(er[m]), _median(ea[m])
+        result["subsets"].append({"name": name, "tiles": n, "fraction": n / max(1, int(in_range.sum())),
+                                  "mre_refined": r, "mre_analytic": a,
+                                  "improvement": (a / max(r, 1e-12)) if n else None})
     if textureless_conf is not None and textureless_conf.numel():
         tc = textureless_conf
         result["textureless"] = {"tiles": int(tc.numel()), "conf_median": float(tc.median()), "conf_max": float(tc.max()),
@@ -152,7 +188,7 @@ def evaluate_model(model: DFDModel, data: DataConfig, model_cfg: ModelConfig, ev
         tds = make_dataset(topts, model_cfg, ev.seed + 1, ev.height, ev.width)
         tt = collect(model, tds, ev.textureless_samples)
         tconf = tt["confidence"]
-    result = summarise(tiles, model.camera.depth_range_m, ev.bins, tconf, ev.min_contrast)
+    result = summarise(tiles, model.camera.depth_range_m, ev.bins, tconf, ev.min_contrast, ev.min_signal_e)
     result["setup"] = {"samples": ev.samples, "textureless_samples": ev.textureless_samples, "seed": ev.seed,
                        "height": ev.height, "width": ev.width, "options": ev.options,
                        "textureless_options": ev.textureless_options, "dataset": data.dataset}
@@ -178,10 +214,13 @@ def report_markdown(result: dict[str, Any], plot_name: str | None = None) -> str
              f"**refined {_pct(s['mre_refined'])}**, analytic {_pct(s['mre_analytic'])} "
              f"({s['improvement']:.2f}x lower). Mean of the per-distance medians: refined "
              f"{_pct(s['mean_of_bins_refined'])}, analytic {_pct(s['mean_of_bins_analytic'])}.", ""]
-    cs = result.get("contrast_subset")
-    if cs:
-        lines += [f"Planes with texture contrast >= {cs['min_contrast']} ({cs['tiles']} tiles): refined "
-                  f"{_pct(cs['mre_refined'])}, analytic {_pct(cs['mre_analytic'])} ({cs['improvement']:.2f}x lower).", ""]
+    if result.get("subsets"):
+        lines += ["| subset (tiles in range) | tiles | share | analytic | refined | improvement |", "|---|---|---|---|---|---|"]
+        for sub in result["subsets"]:
+            imp = "–" if sub["improvement"] is None else f"{sub['improvement']:.2f}x"
+            lines.append(f"| {sub['name']} | {sub['tiles']} | {100 * sub['fraction']:.0f} % | {_pct(sub['mre_analytic'])} | "
+                         f"{_pct(sub['mre_refined'])} | {imp} |")
+        lines.append("")
     lines += ["| distance (m) | tiles | analytic | refined | analytic bias | refined bias | median conf |",
               "|---|---|---|---|---|---|---|"]
     for r in result["per_distance"]:
@@ -195,7 +234,9 @@ def report_markdown(result: dict[str, Any], plot_name: str | None = None) -> str
     lines += ["", "| confidence | tiles | refined median error | refined 90th percentile |", "|---|---|---|---|"]
     for b in result["confidence_bins"]:
         lines.append(f"| {b['conf_lo']:.1f}–{b['conf_hi']:.1f} | {b['tiles']} | {_pct(b['mre_refined'])} | {_pct(b['p90_refined'])} |")
-    lines += ["", f"Error falls as confidence rises (bins with >= 20 tiles): {'yes' if s['error_falls_with_confidence'] else 'NO'}."]
+    lines += ["", f"Error falls as confidence rises: {'yes' if s['error_falls_with_confidence'] else 'NO'} (Spearman rank "
+              f"correlation of confidence and error {s['spearman_conf_error']:.2f}; median error monotone over the bins "
+              f"with >= 20 tiles: {'yes' if s['confidence_bins_monotone'] else 'no'})."]
     t = result.get("textureless")
     if t:
         lines += [f"Texture-less planes ({t['tiles']} tiles): confidence median {t['conf_median']:.4f}, 99th percentile "
@@ -211,6 +252,7 @@ def plot_report(result: dict[str, Any], path: Path, title: str = "") -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FormatStrFormatter
 
     rows = [r for r in result["per_distance"] if r["mre_refined"] is not None]
     d = [r["depth_m"] for r in rows]
@@ -233,6 +275,9 @@ def plot_report(result: dict[str, Any], path: Path, title: str = "") -> None:
     t = result.get("textureless")
     ax2.set_title("error vs confidence" + (f"; texture-less conf max {t['conf_max']:.3f}" if t else ""))
     ax2.grid(True, axis="y", which="both", alpha=0.3)
+    for ax in (ax1, ax2):
+        ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_formatter(FormatStrFormatter("%g"))
     if title:
         fig.suptitle(title)
     fig.tight_layout()

@@ -134,8 +134,10 @@ class RefinedResult:
 
 
 def _exporting() -> bool:
-    return bool(torch.compiler.is_exporting() or torch.compiler.is_compiling() or torch.jit.is_tracing()
-                or torch.onnx.is_in_onnx_export())
+    """True while torch.export / dynamo / the ONNX exporter traces the model (no value checks then)."""
+    checks = (getattr(torch.compiler, "is_exporting", None), getattr(torch.compiler, "is_compiling", None),
+              torch.jit.is_tracing, torch.onnx.is_in_onnx_export)
+    return any(bool(f()) for f in checks if f is not None)
 
 
 class DFDModel(nn.Module):
@@ -180,6 +182,9 @@ class DFDModel(nn.Module):
         except TypeError as exc:
             raise InputError(f"bad refine option: {exc}") from exc
         self.validate = True
+        #: after :meth:`load`: whether the analytic layer still gives the features the CNN
+        #: was trained on (``None``: not checked).
+        self.analytic_matches: bool | None = None
 
     # ------------------------------------------------------------------ options
     def set_validate(self, flag: bool) -> "DFDModel":
@@ -250,6 +255,35 @@ class DFDModel(nn.Module):
         return r.depth, r.confidence, r.depth_analytic
 
     # -------------------------------------------------------------- persistence
+    @torch.no_grad()
+    def analytic_fingerprint(self) -> list[float]:
+        """Per-channel mean features of the analytic stage on a fixed synthetic probe pair.
+
+        Stored by :meth:`save`; :meth:`load` recomputes it, so a change of the analytic
+        layer under a trained CNN (whose inputs it would shift) is detected.
+        """
+        from ..optics import render_pair
+
+        size = max(128, 2 * self.tile)
+        g = torch.Generator().manual_seed(20_240_613)
+        sharp = (0.35 + 0.1 * torch.randn(1, 1, size, size, generator=g, dtype=torch.float64)).clamp(0.0, 1.0)
+        near, far = self.camera.depth_range_m
+        depth = torch.full((1, 1, size, size), 0.5 * (near + far), dtype=torch.float64)
+        i1, i2 = render_pair(self.camera, sharp, depth)
+        r = self.analytic.analyse(i1.float(), i2.float())
+        feats = tile_features(r, self.analytic).double()
+        return [round(float(v), 5) for v in feats.mean((0, 2, 3))]
+
+    def check_analytic(self, expected: list[float], rtol: float = 1e-3, atol: float = 1e-3) -> bool:
+        """Compare :meth:`analytic_fingerprint` with ``expected``; log a warning on mismatch."""
+        got = torch.tensor(self.analytic_fingerprint(), dtype=torch.float64)
+        want = torch.tensor(expected, dtype=torch.float64)
+        ok = got.shape == want.shape and bool(torch.allclose(got, want, rtol=rtol, atol=atol))
+        if not ok:
+            logger.warning("the analytic layer's features differ from those the refinement CNN was trained on "
+                           "(tdfd.dfd changed since training?): retrain the model")
+        return ok
+
     @staticmethod
     def _paths(path: str | Path) -> tuple[Path, Path]:
         p = Path(path)
@@ -273,6 +307,7 @@ class DFDModel(nn.Module):
         state = {k: v.detach().to("cpu").contiguous() for k, v in self.state_dict().items()}
         save_file(state, str(weights), metadata={"format": MODEL_FORMAT})
         cfg = self.config()
+        cfg["analytic_fingerprint"] = self.analytic_fingerprint()
         if extra:
             cfg["extra"] = extra
         meta.write_text(json.dumps(cfg, indent=2, sort_keys=True) + "\n")
@@ -316,4 +351,5 @@ class DFDModel(nn.Module):
             model.load_state_dict(state, strict=True)
         except RuntimeError as exc:
             raise ModelError(f"weights {weights} do not match {meta}: {exc}") from exc
+        model.analytic_matches = model.check_analytic(cfg["analytic_fingerprint"]) if "analytic_fingerprint" in cfg else None
         return model.to(map_location)
