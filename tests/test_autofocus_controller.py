@@ -31,7 +31,9 @@ from tdfd.autofocus.controller import (
 CAM = Camera.preset("reference")
 P1, P2 = CAM.lens_powers_dpt
 RNG = np.random.default_rng(0)
-IMG = RNG.uniform(0.3, 0.7, (96, 128)).astype(np.float32)
+# a textured frame (smooth random texture plus a little sensor-like noise)
+IMG = np.clip(0.5 + 2.0 * (__import__("cv2").GaussianBlur(RNG.uniform(-0.1, 0.1, (96, 128)), (0, 0), 1.5))
+              + RNG.normal(0, 0.002, (96, 128)), 0, 1).astype(np.float32)
 
 
 def ack(p: float, t: float = 0.0) -> LensAck:
@@ -172,6 +174,18 @@ def test_low_confidence_falls_back_to_contrast():
     r = cmd.result
     assert r.status == "focused" and r.method == "contrast" and r.frames == 2 + k
     assert 4 <= k <= 6  # the scan stopped early, after the peak
+
+
+def test_textureless_frames_fall_back():
+    flat = (0.5 + RNG.normal(0, 0.005, (96, 128))).astype(np.float32)
+    ctrl = DFDController(CAM)
+    ctrl.start()
+    ctrl.step(ack(P1))
+    ctrl.step(frame("f1", P1, lens=ack(P2), image=flat))
+    ctrl.step(frame("f2", P2, image=(0.5 + RNG.normal(0, 0.005, (96, 128))).astype(np.float32)))
+    cmd = ctrl.step(grid(0.5, conf=0.9))  # the model is (wrongly) confident
+    assert ctrl.state is State.CONTRAST and isinstance(cmd, SetPower)
+    assert "texture-less" in ctrl.result.fallback_reason and ctrl.result.texture_snr < 1.5
 
 
 def test_no_fallback_fails_on_low_confidence():

@@ -851,8 +851,10 @@ class SimBench:
         limits = self.lens.power_limits_dpt
         if method == "dfd":
             grid = (self.estimator.tile, self.estimator.stride) if self.estimator is not None else None
+            from .estimators import suggested_min_confidence
+
             kwargs = dict(roi=self.roi, settle_s=self.settle_s, power_limits_dpt=limits, contrast=self.contrast_kwargs,
-                          grid=grid)
+                          grid=grid, min_confidence=suggested_min_confidence(self.estimator))
             kwargs.update(self.controller_kwargs)
             kwargs.update(overrides)
             return DFDController(self.camera, **kwargs)

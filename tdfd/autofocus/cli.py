@@ -74,8 +74,12 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     what.add_argument("--verify", action="store_true", help="check focus with one more frame")
     what.add_argument("--continuous", action="store_true", help="keep re-estimating as the target moves")
     what.add_argument("--duration", type=float, default=2.0, help="continuous run length in seconds (default 2)")
-    what.add_argument("--min-confidence", type=float, default=0.05,
-                      help="ROI confidence below which DFD falls back to contrast AF (default 0.05)")
+    what.add_argument("--min-confidence", type=float, default=None,
+                      help="ROI confidence below which DFD falls back to contrast AF (default: the estimator's, "
+                           "0.005 for the ONNX model, 0.02 for the analytic one)")
+    what.add_argument("--min-texture-snr", type=float, default=1.5,
+                      help="ROI contrast over the noise floor below which the target counts as texture-less "
+                           "(default 1.5; 0 disables)")
     what.add_argument("--contrast-strategy", choices=("scan", "golden"), default="scan",
                       help="contrast-detect search (default scan: coarse scan + parabolic peak)")
     what.add_argument("--contrast-step", type=float, default=0.4, help="contrast scan step in dpt (default 0.4)")
@@ -192,7 +196,9 @@ def _run_sim(args: argparse.Namespace) -> int:
                           phase_s=float(np.random.default_rng(args.seed).uniform(0, 1.0 / args.fps)))
     roi = _roi(args)
     contrast = {"strategy": args.contrast_strategy, "step_dpt": args.contrast_step}
-    controller = {"verify": args.verify, "min_confidence": args.min_confidence}
+    controller = {"verify": args.verify, "min_texture_snr": args.min_texture_snr}
+    if args.min_confidence is not None:
+        controller["min_confidence"] = args.min_confidence
     bench = SimBench(estimator=est, readout_hw=readout, roi=roi, timing=timing,
                      noise=SensorNoise(enabled=not args.no_noise), settle_s=args.settle_ms / 1e3,
                      compute_s=args.compute, seed=args.seed, psf=_psf(args.psf), scene=scene,
@@ -235,7 +241,10 @@ def _run_sim(args: argparse.Namespace) -> int:
             "compute_ms_per_estimate": None if charge == "measured" else float(charge) * 1e3,
             "compute_mode": args.compute if isinstance(args.compute, str) else "fixed",
             "seed": args.seed, "scene": args.scene, "verify": args.verify, "psf": args.psf,
-            "contrast": contrast, "faults": args.faults, "min_confidence": args.min_confidence,
+            "contrast": contrast, "faults": args.faults,
+            "min_confidence": args.min_confidence if args.min_confidence is not None else
+            (getattr(est, "min_confidence", None) if est is not None else None),
+            "min_texture_snr": args.min_texture_snr,
             "lens_range_dpt": list(bench.lens.power_limits_dpt),
         }
     report = build_report(records, settings)
@@ -260,8 +269,9 @@ def _continuous(args: argparse.Namespace, bench) -> int:
     def schedule(t: float) -> float:
         return 1.0 / (q_mid + q_amp * math.sin(2 * math.pi * t / period))
 
+    extra = {"min_confidence": args.min_confidence} if args.min_confidence is not None else {}
     result, rows = bench.run_continuous(schedule, duration_s=args.duration, verify=args.verify,
-                                        min_confidence=args.min_confidence)
+                                        min_texture_snr=args.min_texture_snr, **extra)
     live = [r for r in rows if r["tag"] == "live"]
     in_focus = sum(1 for r in live if r["residual_blur_px"] < 1.0)
     print(f"\ncontinuous DFD for {args.duration:g} s, target moving {schedule(period / 4):.2f}..{schedule(3 * period / 4):.2f} m")
@@ -293,7 +303,7 @@ def _run_hardware(args: argparse.Namespace) -> int:
     res = run_hardware(args.port, args.camera, est, method=method, roi=_roi(args), verify=args.verify,
                        dry_run=args.dry_run, continuous=args.continuous,
                        duration_s=args.duration if args.continuous else None, settle_s=args.settle_ms / 1e3,
-                       linearise=args.linearise, white_level=args.white_level,
+                       linearise=args.linearise, white_level=args.white_level, min_confidence=args.min_confidence,
                        contrast={"strategy": args.contrast_strategy, "step_dpt": args.contrast_step})
     dt = res.time_to_focus_s
     print(f"status: {res.status}; method: {res.method}; power: "

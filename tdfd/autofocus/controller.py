@@ -40,7 +40,7 @@ Example:
     ('SetPower', 1.7)
     >>> cmd = ctrl.step(LensAck(1.7, t_s=0.0, ready_s=0.015)); type(cmd).__name__, cmd.tag
     ('Capture', 'f1')
-    >>> img = np.full((96, 96), 0.5, np.float32)
+    >>> img = (0.25 + 0.5 * (np.indices((96, 96)).sum(0) // 8 % 2)).astype(np.float32)  # a checkerboard
     >>> cmd = ctrl.step(Frame(img, 1.7, 0.016, 0.017, 0.018, "f1", lens=LensAck(2.7, 0.017, 0.032)))
     >>> cmd.tag
     'f2'
@@ -519,6 +519,7 @@ class AFResult:
         fallback_reason: why DFD handed over to contrast-detect AF, ``None`` if it did not.
         error: why the run failed, ``None`` if it did not.
         clamped: the in-focus power was outside the lens range and was clamped.
+        texture_snr: ROI band-pass contrast over the noise floor in the sharper DFD frame.
         verified: result of the verification frame, ``None`` if not verified.
         refocus_count: DFD cycles run (continuous mode counts every re-estimate).
         history: ``(t_s, power_dpt, depth_m)`` of every focus decision (continuous mode).
@@ -536,6 +537,7 @@ class AFResult:
     fallback_reason: str | None = None
     error: str | None = None
     clamped: bool = False
+    texture_snr: float | None = None
     verified: bool | None = None
     refocus_count: int = 0
     history: list[tuple[float, float, float | None]] = field(default_factory=list)
@@ -747,8 +749,13 @@ class DFDController(StateMachine):
         roi: region of interest in frame pixels; ``None``: the centred half of the frame.
         settle_s: lens settling time (s) waited after every power command.
         verify: capture one more frame at the in-focus power and check its sharpness.
-        min_confidence: ROI confidence below which DFD is not trusted (texture-less
-            target) and contrast-detect AF takes over.
+        min_confidence: mean ROI confidence below which DFD is not trusted and
+            contrast-detect AF takes over (the scale is the estimator's: see
+            :func:`tdfd.autofocus.estimators.suggested_min_confidence`).
+        min_texture_snr: the ROI's band-pass contrast over the noise floor
+            (:func:`tdfd.autofocus.contrast.pair_texture_snr`, about 1 for a texture-less
+            target) in the more textured frame of the DFD pair, below which the target
+            counts as texture-less and contrast-detect AF takes over; 0 disables the check.
         fallback: run the contrast-detect search when DFD is not trusted (else fail).
         contrast: keyword arguments of :class:`tdfd.autofocus.contrast.ContrastSearch`
             for the fallback search.
@@ -766,7 +773,8 @@ class DFDController(StateMachine):
     """
 
     def __init__(self, camera: Camera, *, roi: Roi | None = None, settle_s: float = 0.015, verify: bool = False,
-                 min_confidence: float = 0.05, fallback: bool = True, contrast: dict | None = None,
+                 min_confidence: float = 0.01, min_texture_snr: float = 1.5, fallback: bool = True,
+                 contrast: dict | None = None,
                  continuous: bool = False, refocus_drop: float = 0.25, refocus_interval_s: float = 0.5,
                  dry_run: bool = False, lens_retries: int = 2, capture_retries: int = 1,
                  power_limits_dpt: tuple[float, float] | None = None, verify_tolerance: float = 0.1,
@@ -777,6 +785,7 @@ class DFDController(StateMachine):
             raise InputError(f"min_confidence must be in [0, 1], got {min_confidence}")
         self.camera, self.roi, self.verify = camera, roi, bool(verify)
         self.min_confidence, self.fallback = float(min_confidence), bool(fallback)
+        self.min_texture_snr = float(min_texture_snr)
         self.contrast_kwargs = dict(contrast or {})
         self.continuous, self.refocus_drop = bool(continuous), float(refocus_drop)
         self.refocus_interval_s, self.dry_run = float(refocus_interval_s), bool(dry_run)
@@ -836,9 +845,23 @@ class DFDController(StateMachine):
         res.estimated_depth_m = agg.depth_m
         log.info("DFD: ROI depth %.4f m (1/d %.3f 1/m, spread %.3f 1/m), confidence %.3f, %d/%d tiles",
                  agg.depth_m, agg.inverse_depth, agg.spread_dpt, agg.confidence, agg.inliers, agg.tiles)
-        if agg.confidence < self.min_confidence or not math.isfinite(agg.inverse_depth) or agg.inverse_depth <= 0:
+        from .contrast import pair_texture_snr
+
+        snr = math.inf
+        if self.min_texture_snr > 0:
+            try:
+                snr = pair_texture_snr(f1.image, f2.image, roi)
+            except InputError as exc:  # a tiny ROI: rely on the confidence alone
+                log.info("no texture check: %s", exc)
+        res.texture_snr = snr
+        reason = None
+        if snr < self.min_texture_snr:
+            reason = (f"texture-less target: ROI contrast {snr:.2f}x the noise floor (below {self.min_texture_snr:g}x), "
+                      f"DFD confidence {agg.confidence:.3f}")
+        elif agg.confidence < self.min_confidence or not math.isfinite(agg.inverse_depth) or agg.inverse_depth <= 0:
             reason = (f"DFD confidence {agg.confidence:.3f} below {self.min_confidence:.3f} over the ROI "
-                      "(texture-less or saturated target?)")
+                      f"(ROI contrast {snr:.1f}x the noise floor)")
+        if reason is not None:
             if self.dry_run:
                 res.fallback_reason = reason
                 raise _Abort(reason, status="dry-run")

@@ -26,7 +26,8 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InputError, ModelError
 
-__all__ = ["OnnxEstimator", "AnalyticEstimator", "load_estimator", "default_model_path", "ONNX_INTRA_THREADS"]
+__all__ = ["OnnxEstimator", "AnalyticEstimator", "load_estimator", "default_model_path", "suggested_min_confidence",
+           "ONNX_INTRA_THREADS"]
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +58,16 @@ def _as_frame(image: np.ndarray, name: str) -> np.ndarray:
     raise InputError(f"{name} must be (H, W) or (1, 1, H, W), got {a.shape}")
 
 
+def suggested_min_confidence(estimator: Any) -> float:
+    """The ROI-confidence threshold below which the autofocus loop should not trust ``estimator``.
+
+    Confidence scales differ: the analytic estimator's is ``1 / (1 + (rel / 0.03)^2)`` of its
+    predicted relative error, the learned model's ``1 / (1 + (b / 0.01)^2)`` of a Laplace
+    scale (tdfd.model). Estimators may carry their own ``min_confidence``; default 0.01.
+    """
+    return float(getattr(estimator, "min_confidence", 0.01))
+
+
 class OnnxEstimator:
     """The exported DFD model (one ``.onnx`` file, CONTRACT.md section 2).
 
@@ -70,6 +81,9 @@ class OnnxEstimator:
         tile, stride: from ``tdfd.grid``.
         path: the file.
         backend: ``"tdfd.runtime"`` or ``"onnxruntime"``.
+        min_confidence: suggested ROI-confidence threshold for autofocus (see
+            :func:`suggested_min_confidence`), tuned on the bench with the reference model
+            on targets apart from the benchmark's.
 
     Raises:
         ModelError: the file is missing or lacks the contract's inputs, outputs or metadata.
@@ -78,6 +92,7 @@ class OnnxEstimator:
     def __init__(self, path: str | Path | None = None, use_runtime: bool = True, threads: int = ONNX_INTRA_THREADS) -> None:
         self.path = Path(path) if path is not None else default_model_path()
         self.threads = int(threads)
+        self.min_confidence = 0.005
         if not self.path.is_file():
             raise ModelError(f"ONNX model {self.path} not found")
         self._runtime: Any = None
@@ -158,6 +173,7 @@ class AnalyticEstimator:
         self._torch = torch
         self._model = FourierRatioDFD(self.camera, tile=self.tile, stride=self.stride, **kwargs).eval()
         self.threads = threads
+        self.min_confidence = 0.02
         self.backend = "torch (analytic FourierRatioDFD)"
 
     def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -227,7 +227,8 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
                  duration_s: float | None = None, settle_s: float = 0.015, linearise: bool = False,
                  white_level: float | None = None,
                  temperature_limits_c: tuple[float, float] = HARDWARE_TEMPERATURE_LIMITS_C,
-                 contrast: dict | None = None, camera: Any | None = None, lens: Any | None = None) -> AFResult:
+                 contrast: dict | None = None, camera: Any | None = None, lens: Any | None = None,
+                 min_confidence: float | None = None) -> AFResult:
     """Autofocus once (or continuously) on real hardware.
 
     Args:
@@ -243,6 +244,7 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
         linearise, white_level: see :func:`frame_to_linear`.
         temperature_limits_c: sent before focal-power mode.
         contrast: contrast-search options.
+        min_confidence: ROI-confidence threshold (default: the estimator's suggestion).
         camera, lens: already-open objects to use instead of opening ``camera_source`` / ``port``.
 
     Returns:
@@ -281,9 +283,13 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
         optics = estimator.camera if estimator is not None else Camera.preset("reference")
         ctrl: StateMachine
         if method == "dfd":
+            from .estimators import suggested_min_confidence
+
             ctrl = DFDController(optics, roi=roi, settle_s=settle_s, verify=verify, dry_run=dry_run,
                                  continuous=continuous, power_limits_dpt=limits, contrast=contrast,
-                                 grid=(estimator.tile, estimator.stride))
+                                 grid=(estimator.tile, estimator.stride),
+                                 min_confidence=suggested_min_confidence(estimator) if min_confidence is None
+                                 else min_confidence)
         else:
             if dry_run:
                 raise InputError("a contrast-detect search must move the lens: no dry run")
