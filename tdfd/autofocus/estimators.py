@@ -92,7 +92,7 @@ class OnnxEstimator:
     def __init__(self, path: str | Path | None = None, use_runtime: bool = True, threads: int = ONNX_INTRA_THREADS) -> None:
         self.path = Path(path) if path is not None else default_model_path()
         self.threads = int(threads)
-        self.min_confidence = 0.005
+        self.min_confidence = 0.002
         if not self.path.is_file():
             raise ModelError(f"ONNX model {self.path} not found")
         self._runtime: Any = None
@@ -173,7 +173,7 @@ class AnalyticEstimator:
         self._torch = torch
         self._model = FourierRatioDFD(self.camera, tile=self.tile, stride=self.stride, **kwargs).eval()
         self.threads = threads
-        self.min_confidence = 0.02
+        self.min_confidence = 0.005
         self.backend = "torch (analytic FourierRatioDFD)"
 
     def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
