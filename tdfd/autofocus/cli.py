@@ -76,7 +76,7 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     what.add_argument("--duration", type=float, default=2.0, help="continuous run length in seconds (default 2)")
     what.add_argument("--min-confidence", type=float, default=None,
                       help="ROI confidence below which DFD falls back to contrast AF (default: the estimator's, "
-                           "0.002 for the ONNX model, 0.005 for the analytic one)")
+                           "0.003 for the ONNX model, 0.005 for the analytic one)")
     what.add_argument("--min-texture-snr", type=float, default=1.5,
                       help="ROI contrast over the noise floor below which the target counts as texture-less "
                            "(default 1.5; 0 disables)")

@@ -92,7 +92,7 @@ class OnnxEstimator:
     def __init__(self, path: str | Path | None = None, use_runtime: bool = True, threads: int = ONNX_INTRA_THREADS) -> None:
         self.path = Path(path) if path is not None else default_model_path()
         self.threads = int(threads)
-        self.min_confidence = 0.002
+        self.min_confidence = 0.003
         if not self.path.is_file():
             raise ModelError(f"ONNX model {self.path} not found")
         self._runtime: Any = None
