@@ -37,7 +37,8 @@ def main(argv: list[str] | None = None) -> None:
 
     cam = Camera.preset("reference")
     ds = DefocusPairDataset(size=(384, 512), camera=cam, seed=args.seed, layouts={"layout": 1.0},
-                            illumination_prob=0.0, psf_shapes=["pillbox"])
+                            illumination_prob=0.0, psf_shapes=["pillbox"],
+                            families=["fractal", "voronoi", "bandlimited"])
     item = ds[args.index]
     i1, i2 = item["image_f1"][None], item["image_f2"][None]
     analytic, _ = FourierRatioDFD(cam, tile=64, stride=32)(i1, i2)
