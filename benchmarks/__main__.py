@@ -22,6 +22,7 @@ BENCHMARKS = {
     "onnx": "benchmarks.bench_onnx",
     "autofocus": "benchmarks.bench_autofocus",
     "paper": "benchmarks.paper_experiment",
+    "overview": "benchmarks.overview_figure",
 }
 
 
