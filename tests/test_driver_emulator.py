@@ -16,6 +16,7 @@ import serial
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.driver_frames import cmd, i16, ref_crc, rep
 from tdfd.driver import Calibration, Emulator, EmulatorSerial, EmulatorServer, Faults, Mode, OptotuneLens, StatusFlags
 from tdfd.driver import protocol as p
 from tdfd.errors import LensConnectionError, LensTimeoutError
@@ -23,26 +24,6 @@ from tdfd.errors import LensConnectionError, LensTimeoutError
 REPO = Path(__file__).resolve().parents[1]
 
 
-def ref_crc(data: bytes) -> int:
-    crc = 0
-    for byte in data:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc
-
-
-def cmd(body: bytes) -> bytes:
-    c = ref_crc(body)
-    return body + bytes([c & 0xFF, c >> 8])
-
-
-def rep(prefix: bytes, data: bytes = b"") -> bytes:
-    return cmd(prefix + data) + b"\r\n"
-
-
-def i16(v: int) -> bytes:
-    return struct.pack(">h", v)
 
 
 class FakeClock:

@@ -12,6 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.driver_frames import ref_crc
 from tdfd.driver import protocol as p
 from tdfd.errors import (
     ChecksumError,
@@ -23,15 +24,6 @@ from tdfd.errors import (
     UnsupportedFirmwareError,
 )
 
-
-def ref_crc(data: bytes) -> int:
-    """CRC-16/ARC, bit by bit: reflected polynomial 0xA001, init 0, no final XOR."""
-    crc = 0
-    for byte in data:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc
 
 
 def ref_reply(prefix: bytes, data: bytes = b"") -> bytes:
