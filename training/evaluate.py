@@ -58,6 +58,14 @@ def _contrast(params: Any) -> float:
         return float("nan")
 
 
+def _family_id(name: str) -> int:
+    """Index of a texture family in :data:`tdfd.textures.TEXTURE_FAMILIES` (-1 if unknown)."""
+    from tdfd.textures import TEXTURE_FAMILIES
+
+    names = list(TEXTURE_FAMILIES)
+    return names.index(name) if name in names else -1
+
+
 @torch.no_grad()
 def collect(model: DFDModel, dataset: Any, count: int, chunk: int = 8) -> dict[str, torch.Tensor]:
     """Run the whole model on samples ``0 .. count-1``; per-tile results (flattened).
@@ -69,7 +77,7 @@ def collect(model: DFDModel, dataset: Any, count: int, chunk: int = 8) -> dict[s
     """
     model = model.eval()
     out: dict[str, list[torch.Tensor]] = {k: [] for k in ("true", "refined", "analytic", "confidence", "contrast",
-                                                         "signal_e", "psf")}
+                                                         "signal_e", "psf", "family")}
     for start in range(0, count, chunk):
         batch = fetch_batch(dataset, list(range(start, min(count, start + chunk))))
         depth, conf, depth_a = model(batch["image_f1"].float(), batch["image_f2"].float())
@@ -84,6 +92,8 @@ def collect(model: DFDModel, dataset: Any, count: int, chunk: int = 8) -> dict[s
         out["signal_e"].append(torch.tensor([_signal_e(p) for p in params]).repeat_interleave(tiles))
         shapes = [str(p.get("psf_shape", "")) if isinstance(p, dict) else "" for p in params]
         out["psf"].append(torch.tensor([{"gaussian": 0, "pillbox": 1}.get(s, 2) for s in shapes]).repeat_interleave(tiles))
+        fams = [str(p.get("texture_families", "")).split(",")[0] if isinstance(p, dict) else "" for p in params]
+        out["family"].append(torch.tensor([_family_id(f) for f in fams]).repeat_interleave(tiles))
     return {k: torch.cat(v) for k, v in out.items()}
 
 
@@ -151,8 +161,16 @@ def summarise(tiles: dict[str, torch.Tensor], camera_range: tuple[float, float],
         m = in_range & (tiles["psf"] == pid)
         if int(m.sum()):
             by_psf[name] = {"tiles": int(m.sum()), "mre_refined": _median(er[m]), "mre_analytic": _median(ea[m])}
+    by_family = {}
+    if "family" in tiles:
+        from tdfd.textures import TEXTURE_FAMILIES
+
+        for fid, name in enumerate(TEXTURE_FAMILIES):
+            m = in_range & (tiles["family"] == fid)
+            if int(m.sum()):
+                by_family[name] = {"tiles": int(m.sum()), "mre_refined": _median(er[m]), "mre_analytic": _median(ea[m])}
     result: dict[str, Any] = {"per_distance": per_distance, "confidence_bins": conf_bins, "by_psf": by_psf,
-                              "summary": summary}
+                              "by_family": by_family, "summary": summary}
     subsets = []
     if min_contrast > 0:
         subsets.append((f"texture contrast >= {min_contrast:g}", tiles["contrast"] >= min_contrast))
@@ -230,6 +248,10 @@ def report_markdown(result: dict[str, Any], plot_name: str | None = None) -> str
     if result.get("by_psf"):
         lines += ["", "| PSF shape | tiles | analytic | refined |", "|---|---|---|---|"]
         for name, r in result["by_psf"].items():
+            lines.append(f"| {name} | {r['tiles']} | {_pct(r['mre_analytic'])} | {_pct(r['mre_refined'])} |")
+    if result.get("by_family"):
+        lines += ["", "| texture family (first texture of the plane) | tiles | analytic | refined |", "|---|---|---|---|"]
+        for name, r in result["by_family"].items():
             lines.append(f"| {name} | {r['tiles']} | {_pct(r['mre_analytic'])} | {_pct(r['mre_refined'])} |")
     lines += ["", "| confidence | tiles | refined median error | refined 90th percentile |", "|---|---|---|---|"]
     for b in result["confidence_bins"]:
