@@ -68,6 +68,7 @@ from collections import deque
 from dataclasses import dataclass, field, fields
 from typing import Callable
 
+from ..errors import DriverError, InputError
 from . import protocol as p
 from .protocol import Mode, StatusFlags
 
@@ -171,11 +172,11 @@ class Emulator:
         spec_temperature_c: tuple[float, float] = (-20.0, 65.0),
     ) -> None:
         if len(firmware_type) != 1 or not firmware_type.isalpha():
-            raise ValueError(f"firmware_type must be one letter, got {firmware_type!r}")
+            raise InputError(f"firmware_type must be one letter, got {firmware_type!r}")
         if error_style not in ("E", "N"):
-            raise ValueError(f"error_style must be 'E' or 'N', got {error_style!r}")
+            raise InputError(f"error_style must be 'E' or 'N', got {error_style!r}")
         if settling_time_s < 0 or max_current_ma <= 0:
-            raise ValueError("settling_time_s must be >= 0 and max_current_ma > 0")
+            raise InputError("settling_time_s must be >= 0 and max_current_ma > 0")
         self._lock = threading.RLock()
         self.firmware_type = firmware_type
         self.clock = clock
@@ -630,9 +631,9 @@ class Faults:
         for name in ("bad_crc", "drop", "late", "garbage"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
-                raise ValueError(f"fault probability {name} must be in [0, 1], got {value}")
+                raise InputError(f"fault probability {name} must be in [0, 1], got {value}")
         if self.late_s < 0 or self.garbage_max_bytes < 1:
-            raise ValueError("late_s must be >= 0 and garbage_max_bytes >= 1")
+            raise InputError("late_s must be >= 0 and garbage_max_bytes >= 1")
         self.rng = random.Random(self.seed)
 
     @classmethod
@@ -649,7 +650,7 @@ class Faults:
             name, sep, value = spec.partition("=")
             name = name.strip().replace("-", "_")
             if not sep or name not in kinds:
-                raise ValueError(f"bad fault {spec!r}: use NAME=VALUE with NAME one of {', '.join(kinds)}")
+                raise InputError(f"bad fault {spec!r}: use NAME=VALUE with NAME one of {', '.join(kinds)}")
             kind = str(kinds[name])
             if value.strip().lower() in ("none", ""):
                 values[name] = None
@@ -769,7 +770,7 @@ class EmulatorServer:
         import tty
 
         if self._thread is not None:
-            raise RuntimeError("EmulatorServer already started")
+            raise DriverError("EmulatorServer already started")
         master, slave = os.openpty()
         tty.setraw(master)
         tty.setraw(slave)

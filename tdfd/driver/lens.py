@@ -27,6 +27,7 @@ from typing import Any
 
 from ..errors import (
     DeviceErrorReply,
+    InputError,
     LensModeError,
     LensRangeError,
     LensTimeoutError,
@@ -84,7 +85,7 @@ class OptotuneLens:
         owns_port: bool = False,
     ) -> None:
         if int(retries) < 0:
-            raise ValueError(f"retries must be >= 0, got {retries}")
+            raise InputError(f"retries must be >= 0, got {retries}")
         self.transport = SerialTransport(port, timeout_s=timeout_s, owns_port=owns_port)
         self.retries = int(retries)
         self.firmware_type: str | None = None

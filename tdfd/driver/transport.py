@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from ..errors import ChecksumError, ForbiddenCommandError, LensConnectionError, LensTimeoutError, ProtocolError
+from ..errors import ChecksumError, ForbiddenCommandError, InputError, LensConnectionError, LensTimeoutError, ProtocolError
 from .protocol import FORBIDDEN_PREFIX, ErrorFrame, Frame, FrameDecoder
 
 try:  # pragma: no cover - termios is POSIX-only
@@ -101,7 +101,7 @@ class SerialTransport:
 
     def __init__(self, port: Any, *, timeout_s: float = DEFAULT_TIMEOUT_S, owns_port: bool = False) -> None:
         if not timeout_s > 0:
-            raise ValueError(f"timeout_s must be positive, got {timeout_s}")
+            raise InputError(f"timeout_s must be positive, got {timeout_s}")
         self.port = port
         self.timeout_s = float(timeout_s)
         self.owns_port = owns_port
