@@ -8,7 +8,7 @@ For each image size (480x640 and 1200x1600, one pair per call) it times
 :class:`tdfd.runtime.DepthRuntime`'s session (``intra_op_num_threads=2``) on the model
 file, and the torch model it was exported from in eager mode (``torch.set_num_threads(2)``,
 ``no_grad``, validation off). Frames are rendered DFD pairs. Calls of the two backends are
-interleaved so that load from other processes on the machine hits both alike; the median,
+alternated in blocks of 10 so that load from other processes on the machine hits both alike; the median,
 10th percentile and minimum are reported with the load average during the run. With
 ``--model`` pointing at a file that does not exist, or none given and no shipped model,
 the model is exported first (from ``models/reference.safetensors`` if present, else a
@@ -36,17 +36,24 @@ SIZES = ((480, 640), (1200, 1600))
 TARGET_MS = {(480, 640): 5.0, (1200, 1600): 35.0}
 
 
-def time_calls(fns: dict[str, object], repeats: int, warmup: int = 5) -> dict[str, list[float]]:
-    """Interleaved timing: ``repeats`` rounds, each calling every function once (seconds)."""
+def time_calls(fns: dict[str, object], repeats: int, warmup: int = 5, block: int = 10) -> dict[str, list[float]]:
+    """Alternating blocks: rounds of ``block`` consecutive calls of each function in turn,
+    ``repeats`` timed calls per function in all (seconds).
+
+    Blocks, not single calls, alternate: a backend's worker threads keep spinning for a while
+    after each call, and would otherwise steal the cores from the next backend's call.
+    """
     for fn in fns.values():
         for _ in range(warmup):
             fn()  # type: ignore[operator]
     times: dict[str, list[float]] = {k: [] for k in fns}
-    for _ in range(repeats):
+    while min(len(v) for v in times.values()) < repeats:
         for k, fn in fns.items():
-            t0 = time.perf_counter()
-            fn()  # type: ignore[operator]
-            times[k].append(time.perf_counter() - t0)
+            fn()  # type: ignore[operator]  # untimed: the other backend's threads wind down
+            for _ in range(min(block, repeats - len(times[k]))):
+                t0 = time.perf_counter()
+                fn()  # type: ignore[operator]
+                times[k].append(time.perf_counter() - t0)
     return times
 
 
@@ -150,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
             f"(weights: {source}); one DFD pair per call (batch 1), rendered frames. ONNX Runtime "
             f"{args.threads} intra-op threads, graph optimisation `{DEFAULT_OPTIMIZATION}` "
             f"(`tdfd.runtime.DepthRuntime`); torch eager with `torch.set_num_threads({args.threads})`, `no_grad`. "
-            f"Calls alternate between the backends.\n\n{table}\n\n"
+            f"Blocks of 10 calls alternate between the backends (one untimed call at each switch).\n\n{table}\n\n"
             f"1-minute load average at the start of each size and at the end: "
             f"{', '.join(f'{x:.2f}' for x in loads)} (2 cores). The machine is shared with other engineers' jobs: "
             f"medians include their interference, which hurts the 2-thread runs most (a thread that loses its core "

@@ -21,7 +21,7 @@ def pink_texture(n: int, batch: int, seed: int, dtype=torch.float32) -> torch.Te
 
 
 # ---------------------------------------------------------------------------- spectra
-@pytest.mark.parametrize("tile,stride,prewhiten", [(16, 8, True), (32, 16, False), (24, 24, True)])
+@pytest.mark.parametrize("tile,stride,prewhiten", [(16, 8, True), (32, 16, False), (24, 24, True), (20, 8, True), (21, 7, False)])
 def test_conv_dft_equals_fft(tile, stride, prewhiten):
     x = torch.rand(2, 1, 3 * tile + 5, 2 * tile + 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
     spec = TileSpectra(tile, stride, max_bin=tile // 2 - 1, prewhiten=prewhiten).double()
@@ -39,6 +39,53 @@ def test_noise_gain_matches_white_noise_power():
     nonzero = expected > 1e-3 * expected.max()
     ratio = p[nonzero] / expected[nonzero]
     assert float(ratio.mean()) == pytest.approx(1.0, abs=0.03)
+
+
+def test_laplacian_forms_agree_and_match_the_stencil(monkeypatch):
+    """Torch eager uses shifted subtractions, export a 3x3 Conv: the same arithmetic."""
+    from tdfd.dfd import spectra
+
+    x = torch.rand(2, 1, 20, 31, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    sliced = spectra.laplacian_valid(x)
+    monkeypatch.setattr(spectra, "is_exporting", lambda: True)
+    conv = spectra.laplacian_valid(x)
+    assert sliced.shape == conv.shape == (2, 1, 18, 29)
+    torch.testing.assert_close(sliced, conv, rtol=0, atol=1e-12)
+    i, j = 6, 8  # output (i - 1, j - 1) is pixel (i, j)
+    stencil = 4 * x[1, 0, i, j] - x[1, 0, i - 1, j] - x[1, 0, i + 1, j] - x[1, 0, i, j - 1] - x[1, 0, i, j + 1]
+    assert float(sliced[1, 0, i - 1, j - 1]) == pytest.approx(float(stencil), abs=1e-12)
+    full = spectra.laplacian_prewhiten(x)
+    assert full.shape == x.shape and float(full[..., 0, :].abs().max()) == 0.0 and float(full[..., :, -1].abs().max()) == 0.0
+
+
+@pytest.mark.parametrize("tile,stride", [(64, 32), (33, 11)])
+def test_noise_variance_estimate_on_white_noise(tile, stride):
+    """Half-resolution (even grid) and full-resolution (odd grid) estimates of white-noise variance."""
+    from tdfd.dfd.fourier_ratio import noise_variance_per_tile
+    from tdfd.grid import grid_shape
+
+    g = torch.Generator().manual_seed(5)
+    s = 0.02
+    x1 = 0.5 + s * torch.randn(2, 1, 200, 230, generator=g, dtype=torch.float64)
+    x2 = 0.5 + s * torch.randn(2, 1, 200, 230, generator=g, dtype=torch.float64)
+    v = noise_variance_per_tile(x1, x2, tile, stride)
+    assert v.shape == (2, 1, *grid_shape(200, 230, tile, stride))
+    assert float(v.median()) / s**2 == pytest.approx(1.0, abs=0.08)
+    # a smooth ramp adds (almost) nothing: the diagonal difference cancels linear trends
+    ramp = torch.linspace(0, 0.3, 230, dtype=torch.float64)[None, None, None, :] + torch.linspace(0, 0.2, 200, dtype=torch.float64)[:, None]
+    assert float(noise_variance_per_tile(x1 + ramp, x2 + ramp, tile, stride).median()) / s**2 == pytest.approx(1.0, abs=0.08)
+
+
+def test_half_resolution_window_mean_is_exact_on_block_constant_images():
+    from tdfd.dfd.fourier_ratio import _tile_stats
+    from tdfd.dfd.spectra import periodic_hann
+    from tdfd.grid import tile_mean
+
+    blocks = torch.rand(2, 1, 50, 61, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    x = blocks.repeat_interleave(2, 2).repeat_interleave(2, 3)  # (2, 1, 100, 122), constant in 2x2 blocks
+    w = periodic_hann(32, torch.float64)
+    m, _ = _tile_stats(x, 32, 16, w, 1)
+    torch.testing.assert_close(m, tile_mean(x, 32, 16, weight=w[:, None] * w[None, :]), rtol=1e-12, atol=1e-12)
 
 
 def test_grid_shape_follows_the_contract():

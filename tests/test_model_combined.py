@@ -61,6 +61,40 @@ def test_zero_init_reproduces_analytic():
     assert model.analyse(i1, i2).features.shape[1] == num_features(FourierRatioDFD(REF).num_rings)
 
 
+def test_pooled_context_features_and_persistence(tmp_path):
+    """context > 1 adds the fit of neighbourhood-averaged measurements (Welch pooling)."""
+    from tdfd.model import pool_measurements
+
+    torch.manual_seed(2)
+    model = DFDModel(REF, tile=32, stride=16, hidden=8, blocks=1, context=3)
+    i1, i2 = _pair(2, 96, 112)
+    feats = model.analyse(i1, i2).features
+    rings = model.analytic.num_rings
+    assert feats.shape[1] == num_features(rings, 3) == num_features(rings) + 2 * rings + 3
+    assert bool(torch.isfinite(feats).all())
+    # pooling: interior tiles average their 3x3 neighbourhood, corners the 2x2 that exist
+    meas = model.analytic.measure(i1, i2)
+    pooled = pool_measurements(meas, 3)
+    torch.testing.assert_close(pooled[0][:, :, 1, 1], meas[0][:, :, 0:3, 0:3].mean((2, 3)))
+    torch.testing.assert_close(pooled[0][:, :, 0, 0], meas[0][:, :, 0:2, 0:2].mean((2, 3)))
+    # the stacked single fit equals two separate fits (per tile, and pooled with span^2 samples)
+    from tdfd.model import tile_features
+
+    span2 = ((32 + 2 * 16) / 32) ** 2
+    separate = tile_features(model.analytic.fit(*meas), model.analytic, model.analytic.fit(*pooled, count_scale=span2))
+    torch.testing.assert_close(feats, separate, rtol=1e-5, atol=1e-5)
+    # on a uniform-depth pair the pooled fit agrees with the per-tile one on average
+    d_scale = feats.shape[1] - 3  # pooled sigma^2 difference is the third-last channel
+    assert abs(float(feats[:, d_scale].mean() - feats[:, 5 * rings + 1].mean())) < 0.05
+    model.save(tmp_path / "m")
+    loaded = DFDModel.load(tmp_path / "m")
+    assert loaded.context == 3 and loaded.analytic_matches is True
+    torch.testing.assert_close(loaded(i1, i2)[0], model(i1, i2)[0])
+    for bad in (0, 2, 2.5):
+        with pytest.raises(InputError):
+            DFDModel(REF, tile=32, stride=16, context=bad)
+
+
 def test_gradients_flow_through_every_parameter():
     torch.manual_seed(1)
     model = DFDModel(REF, tile=32, stride=16, hidden=8, blocks=2)

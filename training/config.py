@@ -80,6 +80,7 @@ class ModelConfig:
     dilation_base: int = 1
     confidence_scale: float = 0.01
     correction_scale: float = 1.0
+    context: int = 1
 
 
 @dataclass

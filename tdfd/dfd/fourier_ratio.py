@@ -93,15 +93,40 @@ def noise_variance_per_tile(image_f1: torch.Tensor, image_f2: torch.Tensor, tile
 
     Uses the diagonal second difference ``x[i,j] - x[i+1,j] - x[i,j+1] + x[i+1,j+1]``
     (variance ``4 s^2`` for white noise of variance ``s^2``), whose pass band is the
-    highest diagonal frequencies where defocused signal is weakest; of the two frames the
-    smaller estimate (the blurrier one, least signal) is taken.
+    highest diagonal frequencies where defocused signal is weakest, once per
+    non-overlapping 2x2 block (independent differences, a quarter of the cost); of the
+    two frames the smaller estimate (the blurrier one, least signal) is taken. With an odd
+    ``tile`` or ``stride`` the difference is taken at every pixel instead.
     """
-    ests = []
-    for im in (image_f1, image_f2):
-        d = im[..., :-1, :-1] - im[..., 1:, :-1] - im[..., :-1, 1:] + im[..., 1:, 1:]
-        d = F.pad(d, (0, 1, 0, 1), mode="replicate")
-        ests.append(F.avg_pool2d(d * d, tile, stride) / 4.0)
-    return torch.minimum(ests[0], ests[1])
+    x = torch.cat([image_f1, image_f2], 0)
+    return _tile_stats(x, tile, stride, periodic_hann(tile, x.dtype), image_f1.shape[0])[1]
+
+
+_BLOCK = torch.tensor([[[[1.0, -1.0], [-1.0, 1.0]]], [[[0.25, 0.25], [0.25, 0.25]]]])  # diagonal difference, block mean
+
+
+def _tile_stats(x: torch.Tensor, tile: int, stride: int, window: torch.Tensor, batch: int
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Windowed tile means ``(2B, 1, h, w)`` and per-tile noise variance ``(B, 1, h, w)`` of
+    frames stacked along the batch (``(2B, 1, H, W)``, frame 1 first).
+
+    For even ``tile`` and ``stride`` both come from one stride-2 convolution giving each 2x2
+    block's diagonal difference and mean; the window mean then weights each block by the
+    sum of its two window taps per axis (exact for images constant within blocks).
+    """
+    k = _BLOCK.to(x)
+    w = window / window.sum()
+    if tile % 2 == 0 and stride % 2 == 0:
+        blocks = F.conv2d(x, k, stride=2)  # (2B, 2, H//2, W//2)
+        d, mean_img = blocks[:, 0:1], blocks[:, 1:2]
+        v = F.avg_pool2d(d * d, tile // 2, stride // 2) / 4.0
+        w, s = w[0::2] + w[1::2], stride // 2
+    else:
+        d = F.pad(F.conv2d(x, k[0:1]), (0, 1, 0, 1), mode="replicate")
+        v = F.avg_pool2d(d * d, tile, stride) / 4.0
+        mean_img, s = x, stride
+    m = F.conv2d(F.conv2d(mean_img, w[None, None, None, :], stride=(1, s)), w[None, None, :, None], stride=(s, 1))
+    return m, torch.minimum(v[:batch], v[batch:])
 
 
 @dataclass
@@ -120,6 +145,10 @@ class DFDResult:
         residual: weighted fit residual per degree of freedom.
         rel_error: predicted relative depth error (standard deviation).
         energy: log of the tile's normalised spectral energy in the band, for each image ``(B, 2, h, w)``.
+        ring_log_power: per-ring noise-subtracted power of each frame, normalised by the
+            frame's squared tile mean, as logs ``(B, 2R, h, w)`` (frame 1's rings first).
+        log_noise: log of the noise variance relative to the product of the two tile means
+            ``(B, 1, h, w)``.
     """
 
     depth: torch.Tensor
@@ -134,6 +163,8 @@ class DFDResult:
     residual: torch.Tensor
     rel_error: torch.Tensor
     energy: torch.Tensor
+    ring_log_power: torch.Tensor
+    log_noise: torch.Tensor
 
 
 class FourierRatioDFD(nn.Module):
@@ -145,7 +176,7 @@ class FourierRatioDFD(nn.Module):
         stride: tile stride in pixels.
         estimator: ``"wls"`` (noise-aware weighted fit, default) or ``"eq13"`` (paper eq. 13).
         min_bin: lowest ring (in DFT bins) used; lower rings carry window leakage.
-        max_bin: highest ring used; defaults to ``round(0.3 * tile)``.
+        max_bin: highest ring used; defaults to ``round(0.2 * tile)``.
         prewhiten: Laplacian pre-whitening before the window (see :mod:`tdfd.dfd.spectra`).
         snr_threshold: per-ring signal-to-noise ratio below which a ring is gated out.
         min_noise_std: floor of the noise standard deviation (intensity units); covers
@@ -191,12 +222,14 @@ class FourierRatioDFD(nn.Module):
         member = (torch.round(radius)[None, :] == rings[:, None]).double()  # (R, N)
         omega2 = self.spectra.omega() ** 2
         count = member.sum(1)
-        self.register_buffer("ring_matrix", member[:, :, None, None], persistent=False)  # conv1x1 weight
+        self.register_buffer("ring_matrix", member[:, :, None, None], persistent=False)  # per-bin powers -> rings
+        # squared DFT coefficients -> ring powers (TileSpectra.ring_weights), one 1x1 conv
+        self.register_buffer("ring_weights", self.spectra.ring_weights(rings)[:, :, None, None], persistent=False)
         self.register_buffer("ring_count", count[None, :, None, None], persistent=False)
         self.register_buffer("ring_omega2", ((member @ omega2) / count)[None, :, None, None], persistent=False)
-        self.register_buffer("noise_gain", self.spectra.noise_gain()[None, :, None, None], persistent=False)
-        win = periodic_hann(tile, torch.float64)
-        self.register_buffer("mean_kernel", (win[:, None] * win[None, :] / win.sum() ** 2)[None, None], persistent=False)
+        # expected ring power of unit-variance white noise (sum of the exact per-bin gains)
+        self.register_buffer("ring_noise_gain", (member @ self.spectra.noise_gain())[None, :, None, None], persistent=False)
+        self.register_buffer("window", periodic_hann(tile, torch.float64), persistent=False)
         # per-bin -1/omega^2 over region R, for eq. 13
         in_band = member.sum(0)
         self.register_buffer("eq13_weight", (in_band / omega2.clamp_min(1e-12) / in_band.sum())[None, :, None, None], persistent=False)
@@ -216,17 +249,41 @@ class FourierRatioDFD(nn.Module):
         """Run the estimator and return every intermediate (see :class:`DFDResult`)."""
         if self.validate:
             validate_pair(image_f1, image_f2, self.tile)
+        r1, r2, noise, m1, m2 = self.measure(image_f1, image_f2)
+        per_bin = None
+        if self.estimator == "eq13":  # per-bin powers (B, N, h, w) of each frame
+            eps = 1e-12 if image_f1.dtype == torch.float64 else 1e-6
+            per_bin = torch.log(self.spectra(image_f1) + eps) - torch.log(self.spectra(image_f2) + eps)
+        return self.fit(r1, r2, noise, m1, m2, per_bin=per_bin)
+
+    def measure(self, image_f1: torch.Tensor, image_f2: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The measurements the fit uses, per tile: ring power sums of both frames
+        ``(B, R, h, w)`` each, the white-noise variance and both windowed tile means
+        ``(B, 1, h, w)`` each (no input validation)."""
         dt = image_f1.dtype
+        b = image_f1.shape[0]
+        x = torch.cat([image_f1, image_f2], 0)  # both frames in one batch (2B, 1, H, W)
+        # windowed tile means (gain normalisation) and white-noise variance
+        m, noise = _tile_stats(x, self.tile, self.stride, self.window.to(dt), b)
+        m = m.abs().clamp_min(1e-3)
+        noise = noise.clamp_min(self.min_noise_std ** 2)
+        a = self.spectra.coefficients(x)  # (2B, 4 K1^2, h, w)
+        r = F.conv2d(a * a, self.ring_weights.to(dt))  # (2B, R, h, w) ring power sums
+        return r[:b], r[b:], noise, m[:b], m[b:]
+
+    def fit(self, r1: torch.Tensor, r2: torch.Tensor, noise: torch.Tensor, m1: torch.Tensor, m2: torch.Tensor,
+            count_scale: float | torch.Tensor = 1.0, per_bin: torch.Tensor | None = None) -> DFDResult:
+        """Estimate from :meth:`measure`'s output (see :class:`DFDResult`).
+
+        ``count_scale`` multiplies the number of independent samples per ring (for
+        measurements averaged over several tiles; a number or a ``(B, 1, 1, 1)`` tensor); ``per_bin`` holds per-bin log power
+        ratios for the ``"eq13"`` estimator.
+        """
+        dt = r1.dtype
         buf = lambda t: t.to(dt)  # noqa: E731
         eps = 1e-12 if dt == torch.float64 else 1e-6
-        # windowed tile means (gain normalisation) and noise variance
-        m1 = F.conv2d(image_f1, buf(self.mean_kernel), stride=self.stride).abs().clamp_min(1e-3)
-        m2 = F.conv2d(image_f2, buf(self.mean_kernel), stride=self.stride).abs().clamp_min(1e-3)
-        noise = noise_variance_per_tile(image_f1, image_f2, self.tile, self.stride).clamp_min(self.min_noise_std ** 2)
-        p1, p2 = self.spectra(image_f1), self.spectra(image_f2)  # (B, N, h, w)
-        ring = buf(self.ring_matrix)
-        r1, r2 = F.conv2d(p1, ring), F.conv2d(p2, ring)  # (B, R, h, w) ring power sums
-        ring_noise = F.conv2d(noise * buf(self.noise_gain), ring)
+        ring_noise = noise * buf(self.ring_noise_gain)
         total1, total2 = r1.sum(1, keepdim=True), r2.sum(1, keepdim=True)
         n1 = ring_noise + self.leakage_floor * total1
         n2 = ring_noise + self.leakage_floor * total2
@@ -235,7 +292,7 @@ class FourierRatioDFD(nn.Module):
         log_s1, log_s2 = torch.log(s1 + eps), torch.log(s2 + eps)
         y = (log_s1 - log_s2) - 2.0 * (torch.log(m1) - torch.log(m2))  # gain-normalised log ratio
         omega2 = buf(self.ring_omega2)
-        count = buf(self.ring_count)
+        count = buf(self.ring_count) * count_scale
         snr = torch.minimum(log_s1 - torch.log(n1 + eps), log_s2 - torch.log(n2 + eps))
         gate = torch.sigmoid(self.gate_sharpness * (snr - math.log(self.snr_threshold)))
         var = 2.0 * (n1 / s1 + n2 / s2) / count + 1e-4
@@ -244,8 +301,9 @@ class FourierRatioDFD(nn.Module):
             sw4 = (w * omega2 * omega2).sum(1, keepdim=True)
             dsq = -(w * y * omega2).sum(1, keepdim=True) / (sw4 + eps)
         else:  # eq. 13: mean of -log(P1/P2) / omega^2 over region R (bins, not rings)
-            lp = torch.log(p1 + eps) - torch.log(p2 + eps) - 2.0 * (torch.log(m1) - torch.log(m2))
-            dsq = -F.conv2d(lp, buf(self.eq13_weight))
+            if per_bin is None:
+                raise InputError("the eq13 estimator needs per-bin log power ratios (per_bin)")
+            dsq = -F.conv2d(per_bin - 2.0 * (torch.log(m1) - torch.log(m2)), buf(self.eq13_weight))
             sw4 = (w * omega2 * omega2).sum(1, keepdim=True)
         resid = y + dsq * omega2
         dof = (gate.sum(1, keepdim=True) - 1.0).clamp_min(1.0)
@@ -260,10 +318,14 @@ class FourierRatioDFD(nn.Module):
         in_range = torch.sigmoid((inv_depth - q_lo) / (0.05 * q_lo)) * torch.sigmoid((q_hi - inv_depth) / (0.05 * q_lo))
         usable = (gate.sum(1, keepdim=True) / 3.0).clamp(max=1.0)
         conf = in_range * usable / (1.0 + (rel / self.rel_error_scale) ** 2)
-        energy = torch.cat([torch.log(total1 / (m1 * m1) + eps), torch.log(total2 / (m2 * m2) + eps)], 1)
+        log_m1, log_m2 = torch.log(m1), torch.log(m2)
+        energy = torch.cat([torch.log(total1 + eps) - 2.0 * log_m1, torch.log(total2 + eps) - 2.0 * log_m2], 1)
+        ring_log_power = torch.cat([log_s1 - 2.0 * log_m1, log_s2 - 2.0 * log_m2], 1)
+        log_noise = torch.log(noise) - log_m1 - log_m2
         return DFDResult(depth=1.0 / q, confidence=conf.clamp(0.0, 1.0), inverse_depth=inv_depth,
                          square_difference=dsq, sigma1=sig1, sigma2=sig2, log_ratio=y, ring_weight=w,
-                         ring_snr=snr, residual=chi2, rel_error=rel, energy=energy)
+                         ring_snr=snr, residual=chi2, rel_error=rel, energy=energy,
+                         ring_log_power=ring_log_power, log_noise=log_noise)
 
     def forward(self, image_f1: torch.Tensor, image_f2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         r = self.analyse(image_f1, image_f2)

@@ -4,7 +4,7 @@
 export turns into ONNX.
 """
 
-from .combined import MODEL_FORMAT, DFDModel, RefinedResult, num_features, tile_features
+from .combined import MODEL_FORMAT, DFDModel, RefinedResult, num_features, pool_measurements, tile_features
 from .refine import RefineNet, ResidualBlock
 
-__all__ = ["DFDModel", "RefinedResult", "RefineNet", "ResidualBlock", "tile_features", "num_features", "MODEL_FORMAT"]
+__all__ = ["DFDModel", "RefinedResult", "RefineNet", "ResidualBlock", "tile_features", "num_features", "pool_measurements", "MODEL_FORMAT"]

@@ -35,20 +35,22 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
+from .._tracing import is_exporting
 from ..camera import Camera
 from ..dfd.fourier_ratio import DFDResult, FourierRatioDFD, validate_pair
 from ..errors import InputError, ModelError
 from ..optics.thin_lens import camera_sigmas
 from .refine import RefineNet
 
-__all__ = ["DFDModel", "RefinedResult", "tile_features", "num_features", "MODEL_FORMAT"]
+__all__ = ["DFDModel", "RefinedResult", "tile_features", "num_features", "pool_measurements", "MODEL_FORMAT"]
 
 logger = logging.getLogger(__name__)
 
@@ -61,9 +63,21 @@ _LOG_REL_BOUNDS = (-7.0, 1.0)
 _LOG_SCALE_BOUNDS = (-9.0, 2.0)
 
 
-def num_features(num_rings: int) -> int:
-    """Number of channels :func:`tile_features` produces for ``num_rings`` rings."""
-    return 3 * num_rings + 7
+def num_features(num_rings: int, context: int = 1) -> int:
+    """Number of channels :func:`tile_features` produces for ``num_rings`` rings (and a
+    pooled context fit when ``context > 1``)."""
+    return 5 * num_rings + 8 + (2 * num_rings + 3 if context > 1 else 0)
+
+
+def pool_measurements(measurements: tuple[torch.Tensor, ...], context: int) -> tuple[torch.Tensor, ...]:
+    """Average :meth:`~tdfd.dfd.FourierRatioDFD.measure` output over ``context x context``
+    neighbouring tiles (stride 1, borders average the tiles that exist).
+
+    Averaging powers *before* the logarithm of the fit is Welch's method: the noise of the
+    power estimate falls and so does the bias it causes in the log ratio of weak rings.
+    """
+    pad = context // 2
+    return tuple(F.avg_pool2d(v, context, 1, pad, count_include_pad=False) for v in measurements)
 
 
 def _square_difference_scale(camera: Camera, mu: float) -> float:
@@ -72,41 +86,61 @@ def _square_difference_scale(camera: Camera, mu: float) -> float:
     return max(abs(float(a) ** 2 - float(b) ** 2) for a, b in s) or 1.0
 
 
-def tile_features(result: DFDResult, analytic: FourierRatioDFD) -> torch.Tensor:
+def _ring_d(result: DFDResult, analytic: FourierRatioDFD, d_scale: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-ring square-difference estimates ``-y_r / omega_r^2`` (normalised, gated) and the gates."""
+    gate = torch.sigmoid(2.0 * (result.ring_snr - math.log(analytic.snr_threshold)))
+    omega2 = analytic.ring_omega2.to(result.log_ratio.dtype)
+    return (-result.log_ratio / omega2 / d_scale).clamp(-4.0, 4.0) * gate, gate
+
+
+def tile_features(result: DFDResult, analytic: FourierRatioDFD, pooled: DFDResult | None = None) -> torch.Tensor:
     """Per-tile features for the refinement CNN from the analytic estimator's intermediates.
 
     Channels (``R`` rings): per-ring square-difference estimate ``-y_r / omega_r^2``
-    (normalised, gated), per-ring gate, per-ring log SNR, then the analytic inverse depth
+    (normalised, gated), per-ring gate, per-ring log SNR, per-ring log power of each frame
+    (noise-subtracted, normalised by the tile mean: the two frames' own spectral shapes,
+    which tell PSF shapes and texture spectra apart), then the analytic inverse depth
     normalised to the working range, the fitted ``sigma1^2 - sigma2^2`` (normalised), log
-    predicted relative error, log fit residual, log spectral energy of both images, and the
-    analytic confidence.
+    predicted relative error, log fit residual, log spectral energy of both images, log
+    relative noise level, and the analytic confidence. With ``pooled`` (the fit of
+    measurements averaged over neighbouring tiles, :func:`pool_measurements`) also its
+    per-ring estimates and gates, its ``sigma1^2 - sigma2^2``, log relative error and
+    confidence.
 
     Args:
         result: :meth:`FourierRatioDFD.analyse` output.
         analytic: the estimator that produced it (ring frequencies, camera, limits).
+        pooled: the pooled fit (optional).
 
     Returns:
-        ``(B, 3R + 7, h, w)`` features, finite for every finite input.
+        ``(B, 5R + 8, h, w)`` features (``(B, 7R + 11, h, w)`` with ``pooled``), finite for
+        every finite input.
     """
-    dt = result.log_ratio.dtype
     near, far = analytic.camera.depth_range_m
     q_lo, q_hi = analytic.inv_depth_limits
     q_mid, q_half = 0.5 * (1.0 / near + 1.0 / far), 0.5 * (1.0 / near - 1.0 / far)
     d_scale = _square_difference_scale(analytic.camera, analytic.mu)
-    gate = torch.sigmoid(2.0 * (result.ring_snr - math.log(analytic.snr_threshold)))
-    omega2 = analytic.ring_omega2.to(dt)
-    ring_d = (-result.log_ratio / omega2 / d_scale).clamp(-4.0, 4.0) * gate
+    ring_d, gate = _ring_d(result, analytic, d_scale)
     feats = [
         ring_d,
         gate,
         result.ring_snr.clamp(-5.0, 20.0),
+        result.ring_log_power.clamp(-30.0, 30.0),
         (result.inverse_depth.clamp(q_lo, q_hi) - q_mid) / q_half,
         (result.square_difference / d_scale).clamp(-4.0, 4.0),
         torch.log(result.rel_error.clamp_min(1e-6)).clamp(-10.0, 5.0),
         torch.log(result.residual.clamp_min(1e-6)).clamp(-10.0, 10.0),
         result.energy.clamp(-30.0, 30.0),
+        result.log_noise.clamp(-30.0, 10.0),
         result.confidence,
     ]
+    if pooled is not None:
+        feats += [
+            *_ring_d(pooled, analytic, d_scale),
+            (pooled.square_difference / d_scale).clamp(-4.0, 4.0),
+            torch.log(pooled.rel_error.clamp_min(1e-6)).clamp(-10.0, 5.0),
+            pooled.confidence,
+        ]
     return torch.cat(feats, 1)
 
 
@@ -133,13 +167,6 @@ class RefinedResult:
     analytic: DFDResult
 
 
-def _exporting() -> bool:
-    """True while torch.export / dynamo / the ONNX exporter traces the model (no value checks then)."""
-    checks = (getattr(torch.compiler, "is_exporting", None), getattr(torch.compiler, "is_compiling", None),
-              torch.jit.is_tracing, torch.onnx.is_in_onnx_export)
-    return any(bool(f()) for f in checks if f is not None)
-
-
 class DFDModel(nn.Module):
     """Analytic DFD plus learned refinement: two frames in, depth and confidence out.
 
@@ -151,6 +178,8 @@ class DFDModel(nn.Module):
         confidence_scale: Laplace scale ``b0`` of the relative error at which the
             confidence is 0.5.
         correction_scale: dioptres per unit of the CNN's first output.
+        context: side (odd, in tiles) of the neighbourhood whose averaged measurements give
+            a second, pooled analytic fit as extra features (1: none).
         **refine_config: keyword arguments of :class:`~tdfd.model.refine.RefineNet`
             (``hidden``, ``blocks``, ``kernel_size``).
 
@@ -161,7 +190,8 @@ class DFDModel(nn.Module):
     """
 
     def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, *, analytic: dict[str, Any] | None = None,
-                 confidence_scale: float = 0.01, correction_scale: float = 1.0, **refine_config: Any) -> None:
+                 confidence_scale: float = 0.01, correction_scale: float = 1.0, context: int = 1,
+                 **refine_config: Any) -> None:
         super().__init__()
         analytic = dict(analytic or {})
         for key in ("tile", "stride", "validate", "camera"):
@@ -169,6 +199,9 @@ class DFDModel(nn.Module):
                 raise InputError(f"analytic option {key!r} is set by DFDModel itself")
         if not (confidence_scale > 0 and correction_scale > 0):
             raise InputError("confidence_scale and correction_scale must be > 0")
+        if int(context) != context or context < 1 or context % 2 == 0:
+            raise InputError(f"context must be a positive odd integer (tiles), got {context!r}")
+        self.context = int(context)
         refine_config = dict(refine_config)
         refine_config.pop("in_channels", None)
         refine_config.pop("out_channels", None)
@@ -178,7 +211,7 @@ class DFDModel(nn.Module):
         self.confidence_scale, self.correction_scale = float(confidence_scale), float(correction_scale)
         self.analytic = FourierRatioDFD(camera, tile=tile, stride=stride, validate=False, **analytic)
         try:
-            self.refine = RefineNet(num_features(self.analytic.num_rings), **refine_config)
+            self.refine = RefineNet(num_features(self.analytic.num_rings, self.context), **refine_config)
         except TypeError as exc:
             raise InputError(f"bad refine option: {exc}") from exc
         self.validate = True
@@ -203,7 +236,7 @@ class DFDModel(nn.Module):
         return {"format": MODEL_FORMAT, "tdfd_version": __version__, "camera": self.camera.to_dict(),
                 "camera_name": self.camera.name, "tile": self.tile, "stride": self.stride,
                 "analytic": self.analytic_config, "confidence_scale": self.confidence_scale,
-                "correction_scale": self.correction_scale,
+                "correction_scale": self.correction_scale, "context": self.context,
                 "refine": {k: v for k, v in self.refine.config().items() if k not in ("in_channels", "out_channels")}}
 
     # ------------------------------------------------------------------ compute
@@ -213,10 +246,23 @@ class DFDModel(nn.Module):
         It has no trainable parameters, so training may compute it once per batch (or in a
         data-loading worker) and call :meth:`head` on the result.
         """
-        if self.validate and not _exporting():
+        if self.validate and not is_exporting():
             validate_pair(image_f1, image_f2, self.tile)
-        r = self.analytic.analyse(image_f1, image_f2)
-        return tile_features(r, self.analytic).to(self.refine.head.weight.dtype), r
+        meas = self.analytic.measure(image_f1, image_f2)
+        pooled = None
+        if self.context > 1:
+            # one fit over the per-tile and the pooled measurements stacked along the batch
+            # (half the operators of two fits: ONNX Runtime pays per operator on small grids)
+            b = image_f1.shape[0]
+            span = (self.tile + (self.context - 1) * self.stride) / self.tile
+            both = tuple(torch.cat([m, p], 0) for m, p in zip(meas, pool_measurements(meas, self.context)))
+            scale = torch.cat([torch.ones(b, 1, 1, 1), torch.full((b, 1, 1, 1), span * span)]).to(both[0])
+            fitted = self.analytic.fit(*both, count_scale=scale)
+            r = DFDResult(**{f.name: getattr(fitted, f.name)[:b] for f in fields(fitted)})
+            pooled = DFDResult(**{f.name: getattr(fitted, f.name)[b:] for f in fields(fitted)})
+        else:
+            r = self.analytic.fit(*meas)
+        return tile_features(r, self.analytic, pooled).to(self.refine.head.weight.dtype), r
 
     def head(self, features: torch.Tensor, inverse_depth: torch.Tensor, rel_error: torch.Tensor
              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -270,8 +316,7 @@ class DFDModel(nn.Module):
         near, far = self.camera.depth_range_m
         depth = torch.full((1, 1, size, size), 0.5 * (near + far), dtype=torch.float64)
         i1, i2 = render_pair(self.camera, sharp, depth)
-        r = self.analytic.analyse(i1.float(), i2.float())
-        feats = tile_features(r, self.analytic).double()
+        feats = self.features(i1.float(), i2.float())[0].double()
         return [round(float(v), 5) for v in feats.mean((0, 2, 3))]
 
     def check_analytic(self, expected: list[float], rtol: float = 1e-3, atol: float = 1e-3) -> bool:
@@ -321,7 +366,8 @@ class DFDModel(nn.Module):
         try:
             camera = Camera.from_dict(cfg["camera"], name=cfg.get("camera_name", "custom"))
             return cls(camera, tile=cfg["tile"], stride=cfg["stride"], analytic=cfg.get("analytic") or {},
-                       confidence_scale=cfg["confidence_scale"], correction_scale=cfg["correction_scale"], **cfg["refine"])
+                       confidence_scale=cfg["confidence_scale"], correction_scale=cfg["correction_scale"],
+                       context=cfg.get("context", 1), **cfg["refine"])
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelError(f"invalid model description: {exc!r}") from exc
 
