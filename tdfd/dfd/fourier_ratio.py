@@ -222,7 +222,6 @@ class FourierRatioDFD(nn.Module):
         member = (torch.round(radius)[None, :] == rings[:, None]).double()  # (R, N)
         omega2 = self.spectra.omega() ** 2
         count = member.sum(1)
-        self.register_buffer("ring_matrix", member[:, :, None, None], persistent=False)  # per-bin powers -> rings
         # squared DFT coefficients -> ring powers (TileSpectra.ring_weights), one 1x1 conv
         self.register_buffer("ring_weights", self.spectra.ring_weights(rings)[:, :, None, None], persistent=False)
         self.register_buffer("ring_count", count[None, :, None, None], persistent=False)
@@ -290,21 +289,22 @@ class FourierRatioDFD(nn.Module):
         s1 = (r1 - n1).clamp_min(eps) + 1e-3 * r1.clamp_min(0.0)
         s2 = (r2 - n2).clamp_min(eps) + 1e-3 * r2.clamp_min(0.0)
         log_s1, log_s2 = torch.log(s1 + eps), torch.log(s2 + eps)
-        y = (log_s1 - log_s2) - 2.0 * (torch.log(m1) - torch.log(m2))  # gain-normalised log ratio
+        log_m1, log_m2 = torch.log(m1), torch.log(m2)
+        gain = 2.0 * (log_m1 - log_m2)  # log ratio of the frames' squared tile means
+        y = (log_s1 - log_s2) - gain  # gain-normalised log ratio
         omega2 = buf(self.ring_omega2)
         count = buf(self.ring_count) * count_scale
         snr = torch.minimum(log_s1 - torch.log(n1 + eps), log_s2 - torch.log(n2 + eps))
         gate = torch.sigmoid(self.gate_sharpness * (snr - math.log(self.snr_threshold)))
         var = 2.0 * (n1 / s1 + n2 / s2) / count + 1e-4
         w = gate / var
+        sw4 = (w * omega2 * omega2).sum(1, keepdim=True)
         if self.estimator == "wls":
-            sw4 = (w * omega2 * omega2).sum(1, keepdim=True)
             dsq = -(w * y * omega2).sum(1, keepdim=True) / (sw4 + eps)
         else:  # eq. 13: mean of -log(P1/P2) / omega^2 over region R (bins, not rings)
             if per_bin is None:
                 raise InputError("the eq13 estimator needs per-bin log power ratios (per_bin)")
-            dsq = -F.conv2d(per_bin - 2.0 * (torch.log(m1) - torch.log(m2)), buf(self.eq13_weight))
-            sw4 = (w * omega2 * omega2).sum(1, keepdim=True)
+            dsq = -F.conv2d(per_bin - gain, buf(self.eq13_weight))
         resid = y + dsq * omega2
         dof = (gate.sum(1, keepdim=True) - 1.0).clamp_min(1.0)
         chi2 = (w * resid * resid).sum(1, keepdim=True) / dof
@@ -318,7 +318,6 @@ class FourierRatioDFD(nn.Module):
         in_range = torch.sigmoid((inv_depth - q_lo) / (0.05 * q_lo)) * torch.sigmoid((q_hi - inv_depth) / (0.05 * q_lo))
         usable = (gate.sum(1, keepdim=True) / 3.0).clamp(max=1.0)
         conf = in_range * usable / (1.0 + (rel / self.rel_error_scale) ** 2)
-        log_m1, log_m2 = torch.log(m1), torch.log(m2)
         energy = torch.cat([torch.log(total1 + eps) - 2.0 * log_m1, torch.log(total2 + eps) - 2.0 * log_m2], 1)
         ring_log_power = torch.cat([log_s1 - 2.0 * log_m1, log_s2 - 2.0 * log_m2], 1)
         log_noise = torch.log(noise) - log_m1 - log_m2

@@ -62,11 +62,6 @@ def periodic_hann(size: int, dtype: torch.dtype = torch.float32) -> torch.Tensor
 _LAPLACE = torch.tensor([[0.0, -1.0, 0.0], [-1.0, 4.0, -1.0], [0.0, -1.0, 0.0]])
 
 
-def _check_image(x: torch.Tensor) -> None:
-    if x.ndim != 4 or x.shape[1] != 1:
-        raise ShapeError(f"expected (B, 1, H, W), got {tuple(x.shape)}")
-
-
 def laplacian_valid(x: torch.Tensor) -> torch.Tensor:
     """Discrete Laplacian ``4x - (up + down + left + right)`` at interior pixels:
     ``(B, 1, H, W)`` -> ``(B, 1, H-2, W-2)``.
@@ -168,7 +163,8 @@ class TileSpectra(nn.Module):
         Channel ``((tx * K1 + kx) * 2 + ty) * K1 + ky`` holds ``sum w(n) w(m) t_y(k_y n) t_x(k_x m) x``
         with ``t = cos`` for trig index 0 and ``sin`` for 1 (``K1 = max_bin + 1``).
         """
-        _check_image(x)
+        if x.ndim != 4 or x.shape[1] != 1:
+            raise ShapeError(f"expected (B, 1, H, W), got {tuple(x.shape)}")
         kw, kh = self.kernel_w.to(x.dtype), self.kernel_h.to(x.dtype)
         if self.prewhiten:  # the Laplacian's zero border is the row pass's zero padding
             rows = F.conv2d(laplacian_valid(x), kw, stride=(1, self.stride), padding=(1, 1))
@@ -179,24 +175,18 @@ class TileSpectra(nn.Module):
         a = F.conv2d(rows.reshape(-1, 1, rows.shape[2], rows.shape[3]), kh, stride=(self.stride, 1))
         return a.reshape(b, -1, a.shape[2], a.shape[3])
 
-    def ring_bin_weights(self, rings: torch.Tensor) -> torch.Tensor:
-        """``(R, K1^2)`` weight of each ``(k_y >= 0, k_x >= 0)`` (``k_y``-major) in each ring's
-        power sum: 2 off the axes (the bin and its ``-k_y`` mirror), 1 on them, 0 outside.
+    def ring_weights(self, rings: torch.Tensor) -> torch.Tensor:
+        """``(R, 4 K1^2)`` weights that turn squared :meth:`coefficients` into ring power sums.
 
         Summed over the half-plane bins of a ring, the cross terms of the ``+k_y`` and
-        ``-k_y`` powers cancel, so a ring's power is this weight times
-        ``CC^2 + SS^2 + SC^2 + CS^2`` of each ``(k_y, k_x)`` (``rings``: integer radii).
+        ``-k_y`` powers cancel, so ``sum_{bins in ring} P = sum_c W[r, c] a_c^2`` with weight
+        2 off the axes (both half-plane bins) and 1 on them (``rings``: integer radii).
         """
-        kk = torch.arange(self.max_bin + 1, dtype=torch.float64)
-        ky, kx = kk[:, None], kk[None, :]
-        member = (torch.round(torch.sqrt(kx ** 2 + ky ** 2))[None] == rings.double()[:, None, None]).double()
-        return (member * torch.where((kx >= 1) & (ky >= 1), 2.0, 1.0)).reshape(len(rings), -1)
-
-    def ring_weights(self, rings: torch.Tensor) -> torch.Tensor:
-        """``(R, 4 K1^2)`` weights that turn squared :meth:`coefficients` into ring power sums
-        (:meth:`ring_bin_weights` repeated over the four trig products)."""
         k1 = self.max_bin + 1
-        w = self.ring_bin_weights(rings).reshape(-1, k1, k1).transpose(1, 2)  # (R, kx, ky)
+        kk = torch.arange(k1, dtype=torch.float64)
+        kx, ky = kk[:, None], kk[None, :]  # (kx, ky)
+        member = (torch.round(torch.sqrt(kx ** 2 + ky ** 2))[None] == rings.double()[:, None, None]).double()
+        w = member * torch.where((kx >= 1) & (ky >= 1), 2.0, 1.0)  # (R, kx, ky)
         return w[:, None, :, None, :].expand(-1, 2, k1, 2, k1).reshape(len(rings), -1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
