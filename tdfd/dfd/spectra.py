@@ -10,8 +10,8 @@ kernels, one along H and one along W, combined into the power of each half-plane
 with ``CC = sum w cos cos x`` etc. This equals ``|FFT(w * tile)|^2`` (tested against
 ``torch.fft``) and exports to ONNX at any opset as two strided ``conv2d`` passes (along W,
 then along H). A matrix-product form over non-overlapping stride blocks computes the same
-sums but ran 1.9x slower in ONNX Runtime 1.32 at 1200x1600 (measured 2026-11-23), so the
-convolutions stay.
+sums but ran slower in ONNX Runtime 1.32 at 1200x1600 (an ad-hoc comparison of the two
+exports, 2026-11-23), so the convolutions stay.
 
 Pre-whitening (on by default) applies the discrete Laplacian ``4x - sum(4 neighbours)``
 before the window (at interior pixels; the 1-pixel image border is set to 0, where the
