@@ -19,6 +19,7 @@ BENCHMARKS = {
     "analytic": "benchmarks.bench_analytic",
     "synthesis": "benchmarks.bench_synthesis",
     "refinement": "benchmarks.bench_refinement",
+    "bound": "benchmarks.bench_bound",
     "onnx": "benchmarks.bench_onnx",
     "autofocus": "benchmarks.bench_autofocus",
     "paper": "benchmarks.paper_experiment",

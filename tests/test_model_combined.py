@@ -90,9 +90,35 @@ def test_pooled_context_features_and_persistence(tmp_path):
     loaded = DFDModel.load(tmp_path / "m")
     assert loaded.context == 3 and loaded.analytic_matches is True
     torch.testing.assert_close(loaded(i1, i2)[0], model(i1, i2)[0])
-    for bad in (0, 2, 2.5):
+    for bad in (0, 2, 2.5, [3, 4], [3, 3], True, ["3"]):
         with pytest.raises(InputError):
             DFDModel(REF, tile=32, stride=16, context=bad)
+
+
+def test_two_context_sides_add_two_pooled_fits(tmp_path):
+    """context=[3, 5]: one pooled fit per side, in the order of the sides, and each equal to
+    its own separate fit (the stacked single fit is only an optimisation)."""
+    from tdfd.model import pool_measurements, tile_features
+
+    torch.manual_seed(3)
+    model = DFDModel(REF, tile=32, stride=16, hidden=8, blocks=1, context=[5, 3])
+    assert model.contexts == (3, 5) and model.context == [3, 5]
+    i1, i2 = _pair(2, 112, 128)
+    feats = model.analyse(i1, i2).features
+    rings = model.analytic.num_rings
+    assert feats.shape[1] == num_features(rings, [3, 5]) == num_features(rings) + 2 * (2 * rings + 3)
+    meas = model.analytic.measure(i1, i2)
+    fits = [model.analytic.fit(*pool_measurements(meas, c), count_scale=((32 + (c - 1) * 16) / 32) ** 2) for c in (3, 5)]
+    separate = tile_features(model.analytic.fit(*meas), model.analytic, fits)
+    torch.testing.assert_close(feats, separate, rtol=1e-5, atol=1e-5)
+    # the wider neighbourhood averages more tiles: its predicted error is not larger
+    rel3 = feats[:, num_features(rings) + 2 * rings + 1]
+    rel5 = feats[:, num_features(rings) + 2 * (2 * rings + 3) - 2]
+    assert float(rel5.mean()) <= float(rel3.mean()) + 1e-6
+    model.save(tmp_path / "m2")
+    loaded = DFDModel.load(tmp_path / "m2")
+    assert loaded.contexts == (3, 5) and loaded.analytic_matches is True
+    torch.testing.assert_close(loaded(i1, i2)[1], model(i1, i2)[1])
 
 
 def test_gradients_flow_through_every_parameter():

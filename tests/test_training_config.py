@@ -25,6 +25,15 @@ def test_toml_file_then_overrides(tmp_path):
     assert cfg.final_eval is False and cfg.model.blocks == 1
 
 
+def test_context_accepts_one_side_or_a_list(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text("[model]\ncontext = 3\n")
+    assert load_config(f).model.context == [3]
+    assert load_config(None, ["model.context=[3, 7]"]).model.context == [3, 7]
+    assert load_config(None, ["model.context=5"]).model.context == [5]
+    assert load_config(None).model.context == []
+
+
 def test_json_file_round_trip(tmp_path):
     cfg = load_config(None, ["seed=7"])
     f = tmp_path / "c.json"
@@ -45,6 +54,10 @@ def test_json_file_round_trip(tmp_path):
     ("optim.lr=-1", "must be > 0"),
     ("data.val_seed=0", "must differ"),
     ("device=tpu", "device"),
+    ("model.context=[3, 4]", "model.context"),
+    ("model.context=[3, 3]", "model.context"),
+    ("model.context=[3, x]", "expected a list"),
+    ("model.context=[3.5]", "expected int"),
 ])
 def test_bad_overrides_raise_typed_errors(override, match):
     with pytest.raises(ConfigError, match=match) as info:

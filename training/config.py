@@ -80,7 +80,9 @@ class ModelConfig:
     dilation_base: int = 1
     confidence_scale: float = 0.01
     correction_scale: float = 1.0
-    context: int = 1
+    #: sides (odd, in tiles) of the neighbourhoods whose pooled fits are extra features
+    #: (a number or a list; [] or 1: none)
+    context: list[int] = field(default_factory=list)
 
 
 @dataclass
@@ -217,6 +219,19 @@ def _coerce(path: str, tp: Any, value: Any) -> Any:
         if isinstance(value, str):
             return value
         raise ConfigError(f"{path}: expected str, got {value!r}")
+    if origin is list:
+        (item,) = typing.get_args(tp) or (Any,)
+        if isinstance(value, str):
+            text = value.strip()
+            try:
+                value = json.loads(text if text.startswith("[") else f"[{text}]")
+            except json.JSONDecodeError as exc:
+                raise ConfigError(f"{path}: expected a list such as [3, 7], got {value!r}") from exc
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            value = [value]
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{path}: expected a list, got {value!r}")
+        return [v if item is Any else _coerce(f"{path}[{i}]", item, v) for i, v in enumerate(value)]
     if origin is dict:
         if isinstance(value, str):
             try:
@@ -352,6 +367,8 @@ def validate_config(cfg: TrainConfig) -> None:
         (cfg.eval.bins >= 1 and cfg.eval.samples >= 1 and cfg.eval.textureless_samples >= 0,
          "eval.bins and eval.samples must be >= 1, eval.textureless_samples >= 0"),
         (cfg.model.confidence_scale > 0 and cfg.model.correction_scale > 0, "model scales must be > 0"),
+        (len(set(cfg.model.context)) == len(cfg.model.context)
+         and all(c >= 1 and c % 2 == 1 for c in cfg.model.context), "model.context must list distinct odd sides >= 1"),
     ]
     for ok, msg in checks:
         if not ok:

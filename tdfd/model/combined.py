@@ -37,7 +37,7 @@ import logging
 import math
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -50,7 +50,8 @@ from ..errors import InputError, ModelError
 from ..optics.thin_lens import camera_sigmas
 from .refine import RefineNet
 
-__all__ = ["DFDModel", "RefinedResult", "tile_features", "num_features", "pool_measurements", "MODEL_FORMAT"]
+__all__ = ["DFDModel", "RefinedResult", "tile_features", "num_features", "context_sizes", "pool_measurements",
+           "MODEL_FORMAT"]
 
 logger = logging.getLogger(__name__)
 
@@ -63,10 +64,33 @@ _LOG_REL_BOUNDS = (-7.0, 1.0)
 _LOG_SCALE_BOUNDS = (-9.0, 2.0)
 
 
-def num_features(num_rings: int, context: int = 1) -> int:
-    """Number of channels :func:`tile_features` produces for ``num_rings`` rings (and a
-    pooled context fit when ``context > 1``)."""
-    return 5 * num_rings + 8 + (2 * num_rings + 3 if context > 1 else 0)
+def context_sizes(context: int | Sequence[int]) -> tuple[int, ...]:
+    """The sides (tiles) of the pooled-context neighbourhoods that ``context`` asks for: one
+    odd side or a sequence of them; 1 means none. Sorted, without 1.
+
+    Raises:
+        InputError: a side that is not a positive odd integer, or the same side twice.
+
+    Example:
+        >>> context_sizes(3), context_sizes([7, 3]), context_sizes(1)
+        ((3,), (3, 7), ())
+    """
+    sides = [context] if isinstance(context, (int, float)) else list(context)
+    out = []
+    for c in sides:
+        if isinstance(c, bool) or not isinstance(c, (int, float)) or int(c) != c or c < 1 or c % 2 == 0:
+            raise InputError(f"context must be positive odd integers (tiles), got {context!r}")
+        if int(c) > 1:
+            out.append(int(c))
+    if len(set(out)) != len(out):
+        raise InputError(f"context sides must differ, got {context!r}")
+    return tuple(sorted(out))
+
+
+def num_features(num_rings: int, context: int | Sequence[int] = 1) -> int:
+    """Number of channels :func:`tile_features` produces for ``num_rings`` rings (and one
+    pooled context fit per context side > 1)."""
+    return 5 * num_rings + 8 + (2 * num_rings + 3) * len(context_sizes(context))
 
 
 def pool_measurements(measurements: tuple[torch.Tensor, ...], context: int) -> tuple[torch.Tensor, ...]:
@@ -93,7 +117,8 @@ def _ring_d(result: DFDResult, analytic: FourierRatioDFD, d_scale: float) -> tup
     return (-result.log_ratio / omega2 / d_scale).clamp(-4.0, 4.0) * gate, gate
 
 
-def tile_features(result: DFDResult, analytic: FourierRatioDFD, pooled: DFDResult | None = None) -> torch.Tensor:
+def tile_features(result: DFDResult, analytic: FourierRatioDFD,
+                  pooled: DFDResult | Sequence[DFDResult] | None = None) -> torch.Tensor:
     """Per-tile features for the refinement CNN from the analytic estimator's intermediates.
 
     Channels (``R`` rings): per-ring square-difference estimate ``-y_r / omega_r^2``
@@ -103,18 +128,18 @@ def tile_features(result: DFDResult, analytic: FourierRatioDFD, pooled: DFDResul
     normalised to the working range, the fitted ``sigma1^2 - sigma2^2`` (normalised), log
     predicted relative error, log fit residual, log spectral energy of both images, log
     relative noise level, and the analytic confidence. With ``pooled`` (the fit of
-    measurements averaged over neighbouring tiles, :func:`pool_measurements`) also its
-    per-ring estimates and gates, its ``sigma1^2 - sigma2^2``, log relative error and
-    confidence.
+    measurements averaged over neighbouring tiles, :func:`pool_measurements`, or a sequence
+    of such fits over neighbourhoods of growing size) also, per pooled fit, its per-ring
+    estimates and gates, its ``sigma1^2 - sigma2^2``, log relative error and confidence.
 
     Args:
         result: :meth:`FourierRatioDFD.analyse` output.
         analytic: the estimator that produced it (ring frequencies, camera, limits).
-        pooled: the pooled fit (optional).
+        pooled: the pooled fit(s) (optional).
 
     Returns:
-        ``(B, 5R + 8, h, w)`` features (``(B, 7R + 11, h, w)`` with ``pooled``), finite for
-        every finite input.
+        ``(B, 5R + 8 + P (2R + 3), h, w)`` features for ``P`` pooled fits, finite for every
+        finite input.
     """
     near, far = analytic.camera.depth_range_m
     q_lo, q_hi = analytic.inv_depth_limits
@@ -134,12 +159,12 @@ def tile_features(result: DFDResult, analytic: FourierRatioDFD, pooled: DFDResul
         result.log_noise.clamp(-30.0, 10.0),
         result.confidence,
     ]
-    if pooled is not None:
+    for p in ([] if pooled is None else [pooled] if isinstance(pooled, DFDResult) else pooled):
         feats += [
-            *_ring_d(pooled, analytic, d_scale),
-            (pooled.square_difference / d_scale).clamp(-4.0, 4.0),
-            torch.log(pooled.rel_error.clamp_min(1e-6)).clamp(-10.0, 5.0),
-            pooled.confidence,
+            *_ring_d(p, analytic, d_scale),
+            (p.square_difference / d_scale).clamp(-4.0, 4.0),
+            torch.log(p.rel_error.clamp_min(1e-6)).clamp(-10.0, 5.0),
+            p.confidence,
         ]
     return torch.cat(feats, 1)
 
@@ -179,7 +204,8 @@ class DFDModel(nn.Module):
             confidence is 0.5.
         correction_scale: dioptres per unit of the CNN's first output.
         context: side (odd, in tiles) of the neighbourhood whose averaged measurements give
-            a second, pooled analytic fit as extra features (1: none).
+            a second, pooled analytic fit as extra features (1: none), or a sequence of such
+            sides, one pooled fit each (``[3, 7]``: a local and a wider neighbourhood).
         **refine_config: keyword arguments of :class:`~tdfd.model.refine.RefineNet`
             (``hidden``, ``blocks``, ``kernel_size``).
 
@@ -190,7 +216,7 @@ class DFDModel(nn.Module):
     """
 
     def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, *, analytic: dict[str, Any] | None = None,
-                 confidence_scale: float = 0.01, correction_scale: float = 1.0, context: int = 1,
+                 confidence_scale: float = 0.01, correction_scale: float = 1.0, context: int | Sequence[int] = 1,
                  **refine_config: Any) -> None:
         super().__init__()
         analytic = dict(analytic or {})
@@ -199,9 +225,10 @@ class DFDModel(nn.Module):
                 raise InputError(f"analytic option {key!r} is set by DFDModel itself")
         if not (confidence_scale > 0 and correction_scale > 0):
             raise InputError("confidence_scale and correction_scale must be > 0")
-        if int(context) != context or context < 1 or context % 2 == 0:
-            raise InputError(f"context must be a positive odd integer (tiles), got {context!r}")
-        self.context = int(context)
+        #: the pooled-context sides, sorted (empty: no pooled fit)
+        self.contexts = context_sizes(context)
+        #: the option as saved: one side as an int (1: none), several as a list
+        self.context: int | list[int] = list(self.contexts) if len(self.contexts) > 1 else (self.contexts or (1,))[0]
         refine_config = dict(refine_config)
         refine_config.pop("in_channels", None)
         refine_config.pop("out_channels", None)
@@ -249,17 +276,20 @@ class DFDModel(nn.Module):
         if self.validate and not is_exporting():
             validate_pair(image_f1, image_f2, self.tile)
         meas = self.analytic.measure(image_f1, image_f2)
-        pooled = None
-        if self.context > 1:
+        pooled: list[DFDResult] = []
+        if self.contexts:
             # one fit over the per-tile and the pooled measurements stacked along the batch
-            # (half the operators of two fits: ONNX Runtime pays per operator on small grids)
+            # (fewer operators than separate fits: ONNX Runtime pays per operator on small grids)
             b = image_f1.shape[0]
-            span = (self.tile + (self.context - 1) * self.stride) / self.tile
-            both = tuple(torch.cat([m, p], 0) for m, p in zip(meas, pool_measurements(meas, self.context)))
-            scale = torch.cat([torch.ones(b, 1, 1, 1), torch.full((b, 1, 1, 1), span * span)]).to(both[0])
-            fitted = self.analytic.fit(*both, count_scale=scale)
-            r = DFDResult(**{f.name: getattr(fitted, f.name)[:b] for f in fields(fitted)})
-            pooled = DFDResult(**{f.name: getattr(fitted, f.name)[b:] for f in fields(fitted)})
+            stacks, scales = [meas], [torch.ones(b, 1, 1, 1)]
+            for c in self.contexts:
+                span = (self.tile + (c - 1) * self.stride) / self.tile  # independent samples grow as span^2
+                stacks.append(pool_measurements(meas, c))
+                scales.append(torch.full((b, 1, 1, 1), span * span))
+            stacked = tuple(torch.cat(parts, 0) for parts in zip(*stacks))
+            fitted = self.analytic.fit(*stacked, count_scale=torch.cat(scales).to(stacked[0]))
+            r, *pooled = [DFDResult(**{f.name: getattr(fitted, f.name)[i * b:(i + 1) * b] for f in fields(fitted)})
+                          for i in range(len(stacks))]
         else:
             r = self.analytic.fit(*meas)
         return tile_features(r, self.analytic, pooled).to(self.refine.head.weight.dtype), r
