@@ -367,9 +367,13 @@ def validate_config(cfg: TrainConfig) -> None:
         (cfg.eval.bins >= 1 and cfg.eval.samples >= 1 and cfg.eval.textureless_samples >= 0,
          "eval.bins and eval.samples must be >= 1, eval.textureless_samples >= 0"),
         (cfg.model.confidence_scale > 0 and cfg.model.correction_scale > 0, "model scales must be > 0"),
-        (len(set(cfg.model.context)) == len(cfg.model.context)
-         and all(c >= 1 and c % 2 == 1 for c in cfg.model.context), "model.context must list distinct odd sides >= 1"),
     ]
     for ok, msg in checks:
         if not ok:
             raise ConfigError(msg)
+    from tdfd.model import context_sizes  # the model's own rule for its context sides
+
+    try:
+        context_sizes(cfg.model.context)
+    except InputError as exc:
+        raise ConfigError(f"model.context: {exc}") from exc
