@@ -46,13 +46,15 @@ import time
 from pathlib import Path
 
 import torch
+from tqdm import tqdm
 
-from benchmarks.bench_refinement import BENCH_SEED  # the refinement benchmark's planes
+from benchmarks.bench_refinement import BENCH_SEED, bench_tiles  # the refinement benchmark's planes
 from benchmarks.report import ROOT, markdown_table, update_section
 from data_synth import DefocusPairDataset
 from data_synth.psf import PSFModel
 from tdfd import Camera
 from tdfd.errors import InputError
+from tdfd.model import DFDModel
 from tdfd.optics.thin_lens import camera_sigmas
 from tdfd.sensor import SensorModel
 from training.config import EvalConfig
@@ -144,8 +146,6 @@ def main(argv: list[str] | None = None) -> int:
                             return_sharp=True, **ev.options)
     t0 = time.perf_counter()
     rows = []  # per plane: depth, per-tile bounds (list), plane bound
-    from tqdm import tqdm
-
     for i in tqdm(range(args.samples), desc="bound", mininterval=5.0):
         s = ds[i]
         prm = s["params"]
@@ -164,17 +164,7 @@ def main(argv: list[str] | None = None) -> int:
 
     measured = None
     if args.model:
-        from benchmarks.bench_refinement import _model_cfg
-        from tdfd.model import DFDModel
-        from training.config import DataConfig
-        from training.data import make_dataset
-        from training.evaluate import collect
-
-        model = DFDModel.load(args.model)
-        data = DataConfig(**{**DataConfig().__dict__, "options": dict(ev.options)})
-        with torch.no_grad():
-            measured = collect(model, make_dataset(data, _model_cfg(model), BENCH_SEED, args.size, args.size),
-                               args.samples)
+        measured = bench_tiles(DFDModel.load(args.model), args.samples, args.size)
 
     def pct(x: float) -> str:
         return f"{100 * x:.2f} %"

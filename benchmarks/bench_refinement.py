@@ -54,16 +54,22 @@ def ablation(model: DFDModel, samples: int, size: int) -> list[list[str]]:
     return rows
 
 
+def bench_tiles(model: DFDModel, samples: int, size: int) -> dict[str, torch.Tensor]:
+    """The model's per-tile results (:func:`training.evaluate.collect`) on the benchmark's
+    first ``samples`` textured planes (seed :data:`BENCH_SEED`, full realism)."""
+    ev = EvalConfig(samples=samples, seed=BENCH_SEED, height=size, width=size)
+    data = DataConfig(**{**DataConfig().__dict__, "options": dict(ev.options)})
+    with torch.no_grad():
+        return collect(model, make_dataset(data, _model_cfg(model), ev.seed, size, size), samples)
+
+
 def plane_errors(model: DFDModel, samples: int, size: int) -> dict[str, float]:
     """Per-plane error: the median over planes of ``|median tile depth - d_true| / d_true``.
 
     Compared with the per-tile median it tells how much of the error is shared by every tile
     of a plane (which no averaging over tiles removes) and how much is tile-to-tile scatter.
     """
-    ev = EvalConfig(samples=samples, seed=BENCH_SEED, height=size, width=size)
-    data = DataConfig(**{**DataConfig().__dict__, "options": dict(ev.options)})
-    with torch.no_grad():
-        tiles = collect(model, make_dataset(data, _model_cfg(model), ev.seed, size, size), samples)
+    tiles = bench_tiles(model, samples, size)
     true = tiles["true"].reshape(samples, -1)
     plane_true = true.median(1).values
     keep = (plane_true >= 0.3) & (plane_true <= 1.0)

@@ -227,8 +227,6 @@ class DFDModel(nn.Module):
             raise InputError("confidence_scale and correction_scale must be > 0")
         #: the pooled-context sides, sorted (empty: no pooled fit)
         self.contexts = context_sizes(context)
-        #: the option as saved: one side as an int (1: none), several as a list
-        self.context: int | list[int] = list(self.contexts) if len(self.contexts) > 1 else (self.contexts or (1,))[0]
         refine_config = dict(refine_config)
         refine_config.pop("in_channels", None)
         refine_config.pop("out_channels", None)
@@ -238,7 +236,7 @@ class DFDModel(nn.Module):
         self.confidence_scale, self.correction_scale = float(confidence_scale), float(correction_scale)
         self.analytic = FourierRatioDFD(camera, tile=tile, stride=stride, validate=False, **analytic)
         try:
-            self.refine = RefineNet(num_features(self.analytic.num_rings, self.context), **refine_config)
+            self.refine = RefineNet(num_features(self.analytic.num_rings, self.contexts), **refine_config)
         except TypeError as exc:
             raise InputError(f"bad refine option: {exc}") from exc
         self.validate = True
@@ -247,6 +245,11 @@ class DFDModel(nn.Module):
         self.analytic_matches: bool | None = None
 
     # ------------------------------------------------------------------ options
+    @property
+    def context(self) -> int | list[int]:
+        """The ``context`` option as saved: one side as an int (1: none), several as a list."""
+        return list(self.contexts) if len(self.contexts) > 1 else (self.contexts or (1,))[0]
+
     def set_validate(self, flag: bool) -> "DFDModel":
         """Turn input validation on or off (off for export); returns ``self``."""
         self.validate = bool(flag)
