@@ -83,6 +83,9 @@ class ModelConfig:
     #: sides (odd, in tiles) of the neighbourhoods whose pooled fits are extra features
     #: (a number or a list; [] or 1: none)
     context: list[int] = field(default_factory=list)
+    #: sides (odd, in tiles; 1 = the window alone) of the neighbourhoods whose coarse fits
+    #: (2x-decimated windows of twice the tile's side) are extra features ([]: none)
+    coarse: list[int] = field(default_factory=list)
 
 
 @dataclass
@@ -371,9 +374,16 @@ def validate_config(cfg: TrainConfig) -> None:
     for ok, msg in checks:
         if not ok:
             raise ConfigError(msg)
-    from tdfd.model import context_sizes  # the model's own rule for its context sides
+    from tdfd.model import coarse_sizes, context_sizes  # the model's own rules for its sides
 
     try:
         context_sizes(cfg.model.context)
     except InputError as exc:
         raise ConfigError(f"model.context: {exc}") from exc
+    try:
+        coarse_sizes(cfg.model.coarse)
+    except InputError as exc:
+        raise ConfigError(f"model.coarse: {exc}") from exc
+    if cfg.model.coarse and (cfg.model.tile % 4 or 2 * cfg.model.stride != cfg.model.tile):
+        raise ConfigError(f"model.coarse needs a tile divisible by 4 and stride = tile / 2 "
+                          f"(got tile {cfg.model.tile}, stride {cfg.model.stride})")
