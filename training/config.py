@@ -381,9 +381,6 @@ def validate_config(cfg: TrainConfig) -> None:
     except InputError as exc:
         raise ConfigError(f"model.context: {exc}") from exc
     try:
-        coarse_sizes(cfg.model.coarse)
+        coarse_sizes(cfg.model.coarse, cfg.model.tile, cfg.model.stride)
     except InputError as exc:
         raise ConfigError(f"model.coarse: {exc}") from exc
-    if cfg.model.coarse and (cfg.model.tile % 4 or 2 * cfg.model.stride != cfg.model.tile):
-        raise ConfigError(f"model.coarse needs a tile divisible by 4 and stride = tile / 2 "
-                          f"(got tile {cfg.model.tile}, stride {cfg.model.stride})")

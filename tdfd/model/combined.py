@@ -64,6 +64,21 @@ _LOG_REL_BOUNDS = (-7.0, 1.0)
 _LOG_SCALE_BOUNDS = (-9.0, 2.0)
 
 
+def _odd_sides(value: int | Sequence[int], name: str, drop_one: bool) -> tuple[int, ...]:
+    """Neighbourhood sides (tiles) from one side or a sequence: positive odd integers, each
+    once (after dropping 1 if ``drop_one``), sorted. Raises :class:`InputError` naming ``name``."""
+    sides = [value] if isinstance(value, (int, float)) else list(value)
+    out = []
+    for c in sides:
+        if isinstance(c, bool) or not isinstance(c, (int, float)) or int(c) != c or c < 1 or c % 2 == 0:
+            raise InputError(f"{name} must be positive odd integers (tiles), got {value!r}")
+        if int(c) > 1 or not drop_one:
+            out.append(int(c))
+    if len(set(out)) != len(out):
+        raise InputError(f"{name} sides must differ, got {value!r}")
+    return tuple(sorted(out))
+
+
 def context_sizes(context: int | Sequence[int]) -> tuple[int, ...]:
     """The sides (tiles) of the pooled-context neighbourhoods that ``context`` asks for: one
     odd side or a sequence of them; 1 means none. Sorted, without 1.
@@ -75,40 +90,28 @@ def context_sizes(context: int | Sequence[int]) -> tuple[int, ...]:
         >>> context_sizes(3), context_sizes([7, 3]), context_sizes(1)
         ((3,), (3, 7), ())
     """
-    sides = [context] if isinstance(context, (int, float)) else list(context)
-    out = []
-    for c in sides:
-        if isinstance(c, bool) or not isinstance(c, (int, float)) or int(c) != c or c < 1 or c % 2 == 0:
-            raise InputError(f"context must be positive odd integers (tiles), got {context!r}")
-        if int(c) > 1:
-            out.append(int(c))
-    if len(set(out)) != len(out):
-        raise InputError(f"context sides must differ, got {context!r}")
-    return tuple(sorted(out))
+    return _odd_sides(context, "context", drop_one=True)
 
 
-def coarse_sizes(coarse: int | Sequence[int] | None) -> tuple[int, ...]:
+def coarse_sizes(coarse: int | Sequence[int] | None, tile: int | None = None, stride: int | None = None
+                 ) -> tuple[int, ...]:
     """The sides (in tiles) of the neighbourhoods over which the coarse (2x-decimated)
     measurements are pooled, one coarse fit each: ``1`` is the coarse window alone. Sorted;
-    ``None`` or ``[]``: no coarse fit.
+    ``None`` or ``[]``: no coarse fit. With ``tile`` and ``stride``, also checks that the
+    grid allows coarse fits (a tile divisible by 4 and ``stride = tile / 2``).
 
     Raises:
-        InputError: a side that is not a positive odd integer, or the same side twice.
+        InputError: a side that is not a positive odd integer, the same side twice, or a
+            grid that does not allow coarse fits.
 
     Example:
         >>> coarse_sizes([5, 1]), coarse_sizes(None)
         ((1, 5), ())
     """
-    if coarse is None:
-        return ()
-    sides = [coarse] if isinstance(coarse, (int, float)) else list(coarse)
-    for c in sides:
-        if isinstance(c, bool) or not isinstance(c, (int, float)) or int(c) != c or c < 1 or c % 2 == 0:
-            raise InputError(f"coarse must be positive odd integers (tiles), got {coarse!r}")
-    out = [int(c) for c in sides]
-    if len(set(out)) != len(out):
-        raise InputError(f"coarse sides must differ, got {coarse!r}")
-    return tuple(sorted(out))
+    sides = () if coarse is None else _odd_sides(coarse, "coarse", drop_one=False)
+    if sides and tile is not None and stride is not None and (tile % 4 != 0 or 2 * stride != tile):
+        raise InputError(f"coarse fits need a tile divisible by 4 and stride = tile / 2, got tile {tile}, stride {stride}")
+    return sides
 
 
 def num_features(num_rings: int, context: int | Sequence[int] = 1, coarse: int | Sequence[int] | None = None) -> int:
@@ -303,9 +306,7 @@ class DFDModel(nn.Module):
         #: the pooled-context sides, sorted (empty: no pooled fit)
         self.contexts = context_sizes(context)
         #: the coarse-fit sides, sorted (empty: no coarse fit)
-        self.coarse_sides = coarse_sizes(coarse)
-        if self.coarse_sides and (tile % 4 != 0 or 2 * stride != tile):
-            raise InputError(f"coarse fits need a tile divisible by 4 and stride = tile / 2, got tile {tile}, stride {stride}")
+        self.coarse_sides = coarse_sizes(coarse, tile, stride)
         refine_config = dict(refine_config)
         refine_config.pop("in_channels", None)
         refine_config.pop("out_channels", None)
@@ -365,47 +366,33 @@ class DFDModel(nn.Module):
             validate_pair(image_f1, image_f2, self.tile)
         meas = self.analytic.measure(image_f1, image_f2)
         b = image_f1.shape[0]
-        # every fit (per tile, pooled, coarse) in one call on measurements stacked along the
-        # batch (fewer operators than separate fits: ONNX Runtime pays per operator on small grids)
-        stacks, scales, fitters = [meas], [1.0], [self.analytic]
-        for c in self.contexts:
-            span = (self.tile + (c - 1) * self.stride) / self.tile  # independent samples grow as span^2
-            stacks.append(pool_measurements(meas, c))
-            scales.append(span * span)
-            fitters.append(self.analytic)
+        r, *pooled = self._fit_stacked(self.analytic, [meas] + [pool_measurements(meas, c) for c in self.contexts],
+                                       (1, *self.contexts), b)
+        coarse_fits: list[DFDResult] = []
         if self.coarse_sides:
             coarse = coarse_measurements(self.coarse_analytic, image_f1, image_f2, meas[2])
-            for c in self.coarse_sides:
-                span = (self.tile + (c - 1) * self.stride // 2) / self.tile  # in decimated pixels
-                stacks.append(pool_measurements(coarse, c) if c > 1 else coarse)
-                scales.append(span * span)
-                fitters.append(self.coarse_analytic)
-        fits = self._fit_stacked(stacks, scales, fitters, b)
-        r, pooled, coarse_fits = fits[0], fits[1:1 + len(self.contexts)], fits[1 + len(self.contexts):]
+            coarse_fits = self._fit_stacked(self.coarse_analytic,
+                                            [pool_measurements(coarse, c) if c > 1 else coarse for c in self.coarse_sides],
+                                            self.coarse_sides, b)
         feats = tile_features(r, self.analytic, pooled, coarse_fits, self.coarse_analytic)
         return feats.to(self.refine.head.weight.dtype), r
 
     @staticmethod
-    def _fit_stacked(stacks: list[tuple[torch.Tensor, ...]], scales: list[float], fitters: list[FourierRatioDFD],
+    def _fit_stacked(estimator: FourierRatioDFD, stacks: list[tuple[torch.Tensor, ...]], sides: Sequence[int],
                      b: int) -> list[DFDResult]:
-        """Fit every measurement set of ``stacks``; consecutive sets with the same estimator
-        share one stacked :meth:`~tdfd.dfd.FourierRatioDFD.fit` call."""
-        out: list[DFDResult] = []
-        i = 0
-        while i < len(stacks):
-            j = i
-            while j < len(stacks) and fitters[j] is fitters[i]:
-                j += 1
-            if j - i == 1 and scales[i] == 1.0:
-                out.append(fitters[i].fit(*stacks[i]))
-            else:
-                stacked = tuple(torch.cat(parts, 0) for parts in zip(*stacks[i:j]))
-                count = torch.cat([torch.full((b, 1, 1, 1), float(s)) for s in scales[i:j]]).to(stacked[0])
-                fitted = fitters[i].fit(*stacked, count_scale=count)
-                out += [DFDResult(**{f.name: getattr(fitted, f.name)[k * b:(k + 1) * b] for f in fields(fitted)})
-                        for k in range(j - i)]
-            i = j
-        return out
+        """Fit every measurement set of ``stacks`` (averaged over ``sides x sides`` tiles of
+        ``estimator``'s grid) in one :meth:`~tdfd.dfd.FourierRatioDFD.fit` call on the sets
+        stacked along the batch: fewer operators than separate fits, and ONNX Runtime pays
+        per operator on small grids."""
+        if len(stacks) == 1 and sides[0] == 1:
+            return [estimator.fit(*stacks[0])]
+        # independent samples grow as the square of the span of the averaged tiles
+        span = [(estimator.tile + (c - 1) * estimator.stride) / estimator.tile for c in sides]
+        stacked = tuple(torch.cat(parts, 0) for parts in zip(*stacks))
+        count = torch.cat([torch.full((b, 1, 1, 1), s * s) for s in span]).to(stacked[0])
+        fitted = estimator.fit(*stacked, count_scale=count)
+        return [DFDResult(**{f.name: getattr(fitted, f.name)[k * b:(k + 1) * b] for f in fields(fitted)})
+                for k in range(len(stacks))]
 
     def head(self, features: torch.Tensor, inverse_depth: torch.Tensor, rel_error: torch.Tensor
              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
