@@ -24,25 +24,43 @@ for any estimator that assumes nothing about the scene). Projecting it out gives
 
 summed over the independent half of the spectrum. The bound on the relative depth error of
 a tile is ``sqrt(1 / J) / q`` (a standard deviation); for a normal error its median
-absolute value is 0.674 times that. Two versions:
+absolute value is 0.674 times that.
 
-* **per tile**: the information of one 64x64 tile (what a tile-local estimator can use);
-* **per plane**: the information of the whole 256x256 plane (16 disjoint tiles summed),
-  which bounds even an estimator that pools every tile of the plane, as a CNN with a wide
-  receptive field may on fronto-parallel planes.
+The lens PSF is itself unknown: ``data_synth`` draws its shape, diffraction and aberration
+afresh for every sample (:data:`PSF_NUISANCES`). With those parameters ``eta`` added to
+``theta = (q, eta)``, the per-bin information becomes the matrix
 
-The bound is optimistic for every real estimator: it knows the PSF shape and the frames'
-noise levels, ignores clipping of over-exposed highlights, vignetting, breathing and
-misregistration, and uses no tile-boundary effects. Writes the ``bound`` section of
-``docs/BENCHMARKS.md`` next to the refined model's measured errors on the same planes.
+    J_jk(u) = 2 |S(u)|^2 Re(c_j conj(c_k)) / (nu_2 |H1|^2 + nu_1 |H2|^2),   c_j = dH1/dtheta_j H2 - dH2/dtheta_j H1,
+
+and the bound on ``q`` is the ``qq`` entry of its inverse, with ``data_synth``'s spread of each
+``eta`` added as prior information. Five versions:
+
+* **per tile, PSF known**: one 64x64 tile's information, the PSF given;
+* **per tile, PSF shared by the image**: a depth per tile, the PSF common to the image and
+  learnt from all of its tiles: the best that a scene-agnostic estimator, such as the
+  refinement CNN that sees the whole tile grid, can do;
+* **per tile, PSF from the tile alone**: what a tile-local estimator can do;
+* **per plane**, PSF known or unknown: the whole 256x256 plane's information (16 disjoint
+  tiles summed), which bounds even an estimator that assumes the view is one
+  fronto-parallel plane and pools every tile.
+
+The benchmark scores a median over tiles, so for the per-tile bounds it also reports the
+median that an unbiased estimator reaching the bound on every tile would score
+(:func:`median_at_bound`). The bounds are optimistic for every real estimator: they know the
+frames' noise levels, ignore clipping of over-exposed highlights, vignetting, breathing,
+misregistration and frame gain jitter, and use no tile-boundary effects. Writes the ``bound``
+section of ``docs/BENCHMARKS.md`` next to the refined model's measured errors on the same
+planes.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -51,7 +69,8 @@ from tqdm import tqdm
 from benchmarks.bench_refinement import BENCH_SEED, bench_tiles  # the refinement benchmark's planes
 from benchmarks.report import ROOT, markdown_table, update_section
 from data_synth import DefocusPairDataset
-from data_synth.psf import PSFModel
+from data_synth.params import SynthConfig
+from data_synth.psf import PSFModel, diffraction_sigma_px
 from tdfd import Camera
 from tdfd.errors import InputError
 from tdfd.model import DFDModel
@@ -60,10 +79,22 @@ from tdfd.sensor import SensorModel
 from training.config import EvalConfig
 from training.losses import depth_relative_error
 
-__all__ = ["plane_information", "otf", "main"]
+__all__ = ["plane_information", "plane_fisher", "otf_jacobian", "psf_prior_variance", "depth_variances", "median_at_bound", "otf", "main"]
 
 TILE, STRIDE = 64, 32
 MEDIAN_ABS = 0.6745  # median |x| of a standard normal x
+#: The lens PSF's parameters that ``data_synth`` draws afresh for every sample
+#: (:func:`data_synth.params.draw_psf`) and that no estimator is told: the shape
+#: ``kappa = 1 / beta`` (0 pillbox, 0.5 Gaussian), the diffraction variance ``sigma_d^2``
+#: (px^2), the astigmatism ``a (cos 2 theta, sin 2 theta)`` and the spherical weight ``s``.
+PSF_NUISANCES = ("shape", "diffraction", "astig_c", "astig_s", "spherical")
+#: Samples per pixel and side of the bound's PSFs: fine enough that the kernels, hence the
+#: OTFs' finite differences, vary smoothly with the shape (a hard-edged profile sampled at
+#: pixel centres jumps as pixels cross its edge).
+SUPERSAMPLE = 9
+NUISANCE_STEPS = {"shape": 0.01, "astig_c": 0.01, "astig_s": 0.01, "spherical": 0.02}
+#: The bounds of :func:`depth_variances` that the benchmark reports, in table order.
+VARIANTS = ("tile_known", "tile_shared", "tile_unknown", "plane_known", "plane_unknown")
 BINS = ((0.30, 0.40), (0.40, 0.50), (0.50, 0.60), (0.60, 0.70), (0.70, 0.80), (0.80, 0.90), (0.90, 1.00))
 
 
@@ -75,10 +106,11 @@ def psf_model(params: dict) -> PSFModel:
                     float(params["astigmatism_angle"]), float(params["spherical"]))
 
 
-def otf(model: PSFModel, sigma: float, size: int = TILE) -> torch.Tensor:
+def otf(model: PSFModel, sigma: float, size: int = TILE, supersample: int | None = None) -> torch.Tensor:
     """Optical transfer function ``(size, size)`` (complex; real for symmetric PSFs) of the
-    PSF of signed blur ``sigma`` px, centred so that a delta PSF gives 1 everywhere."""
-    k = model.kernels(torch.tensor([sigma], dtype=torch.float64))[0]
+    PSF of signed blur ``sigma`` px, centred so that a delta PSF gives 1 everywhere
+    (``supersample``: see :meth:`data_synth.psf.PSFModel.kernels`)."""
+    k = model.kernels(torch.tensor([sigma], dtype=torch.float64), supersample=supersample)[0]
     n = k.shape[-1]
     if n > size:
         raise InputError(f"PSF of {n} px does not fit a {size} px tile")
@@ -100,7 +132,85 @@ def plane_information(camera: Camera, sharp: torch.Tensor, depth_m: float, param
         dq: finite-difference step of ``q`` in 1/m.
 
     Returns:
-        ``(h, w)`` information of the 64/32 grid's tiles (``J`` in the module docs).
+        ``(h, w)`` information of the 64/32 grid's tiles (``J`` in the module docs), with the
+        PSF known.
+    """
+    return plane_fisher(camera, sharp, depth_m, params, nuisances=False, dq=dq)[..., 0, 0]
+
+
+def _coords(model: PSFModel) -> list[float]:
+    """The sample PSF's :data:`PSF_NUISANCES` coordinates."""
+    kappa = 1.0 / model.beta if math.isfinite(model.beta) else 0.0
+    two = 2.0 * model.astigmatism_angle
+    return [kappa, model.diffraction_sigma_px**2, model.astigmatism * math.cos(two),
+            model.astigmatism * math.sin(two), model.spherical]
+
+
+def _with(model: PSFModel, name: str, value: float, coords: list[float]) -> PSFModel:
+    """``model`` with one nuisance coordinate (shape or aberration) set to ``value``."""
+    if name == "shape":
+        return replace(model, shape=1.0 / value if value > 0 else "pillbox")
+    c, s = coords[2], coords[3]
+    if name == "astig_c":
+        c = value
+    elif name == "astig_s":
+        s = value
+    elif name == "spherical":
+        return replace(model, spherical=value)
+    return replace(model, astigmatism=math.hypot(c, s), astigmatism_angle=0.5 * math.atan2(s, c) % math.pi)
+
+
+def otf_jacobian(camera: Camera, model: PSFModel, q: float, nuisances: bool = True, dq: float = 1e-3
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Both frames' OTFs at inverse depth ``q`` and their derivatives.
+
+    Returns:
+        ``(H1, H2, dH1, dH2)``: ``(T, T)`` OTFs and ``(P, T, T)`` derivatives with respect to
+        ``q`` (1/m) and, if ``nuisances``, the :data:`PSF_NUISANCES` coordinates (``P = 6``).
+        The PSFs are supersampled :data:`SUPERSAMPLE` times. Shape and aberration by central
+        differences (the shape one-sided next to the pillbox, where ``kappa`` cannot go below
+        0); diffraction analytically, as the Gaussian factor ``exp(-2 pi^2 sigma_d^2 |f|^2)``
+        it puts on the OTF.
+    """
+    def pair(m: PSFModel, qq: float) -> tuple[torch.Tensor, torch.Tensor]:
+        s1, s2 = camera_sigmas(camera, 1.0 / qq)
+        return otf(m, float(s1), supersample=SUPERSAMPLE), otf(m, float(s2), supersample=SUPERSAMPLE)
+
+    h1, h2 = pair(model, q)
+    (p1, p2), (m1, m2) = pair(model, q + dq), pair(model, q - dq)
+    d1, d2 = [(p1 - m1) / (2 * dq)], [(p2 - m2) / (2 * dq)]
+    if nuisances:
+        coords = _coords(model)
+        f = torch.fft.fftfreq(TILE, dtype=torch.float64)
+        f2 = f[:, None] ** 2 + f[None, :] ** 2  # cycles^2 / px^2
+        for i, name in enumerate(PSF_NUISANCES):
+            if name == "diffraction":
+                d1.append(-2.0 * math.pi**2 * f2 * h1)
+                d2.append(-2.0 * math.pi**2 * f2 * h2)
+                continue
+            step = NUISANCE_STEPS[name]
+            lo, hi = coords[i] - step, coords[i] + step
+            if name == "shape" and lo < 0.5 * step:  # next to the pillbox: kappa >= 0
+                lo, hi = 0.5 * step, 2.5 * step
+            (a1, a2), (b1, b2) = pair(_with(model, name, hi, coords), q), pair(_with(model, name, lo, coords), q)
+            d1.append((a1 - b1) / (hi - lo))
+            d2.append((a2 - b2) / (hi - lo))
+    return h1, h2, torch.stack(d1), torch.stack(d2)
+
+
+def plane_fisher(camera: Camera, sharp: torch.Tensor, depth_m: float, params: dict, nuisances: bool = True,
+                 dq: float = 1e-3) -> torch.Tensor:
+    """Fisher information matrix of each tile of a fronto-parallel plane.
+
+    The parameters are ``q = 1/d`` (1/m) and, if ``nuisances``, the sample PSF's
+    :data:`PSF_NUISANCES` coordinates. Per bin, with ``c_j = dH1/dtheta_j H2 - dH2/dtheta_j H1``,
+
+        J_jk(u) = 2 |S(u)|^2 Re(c_j conj(c_k)) / (nu_2 |H1|^2 + nu_1 |H2|^2),
+
+    summed over the independent half of the spectrum (the module docs' ``J`` is ``J_qq``).
+
+    Returns:
+        ``(h, w, P, P)`` for the 64/32 grid's tiles; ``P = 1`` without nuisances, else 6.
     """
     q = 1.0 / depth_m
     model = psf_model(params)
@@ -109,17 +219,9 @@ def plane_information(camera: Camera, sharp: torch.Tensor, depth_m: float, param
     # output units per unit radiance (slope of the sensor's mean response, far from clipping)
     lo, hi = sensor.expected_mean(torch.tensor([0.0, 1e-3], dtype=torch.float64))
     scale = float(hi - lo) / 1e-3
-
-    def otfs(qq: float) -> tuple[torch.Tensor, torch.Tensor]:
-        s1, s2 = camera_sigmas(camera, 1.0 / qq)
-        return otf(model, float(s1)), otf(model, float(s2))
-
-    h1, h2 = otfs(q)
-    p1, p2 = otfs(q + dq)
-    m1, m2 = otfs(q - dq)
-    d1, d2 = (p1 - m1) / (2 * dq), (p2 - m2) / (2 * dq)
-    # per bin: |H1' H2 - H2' H1|^2 and the two noise weights (complex-safe form of the formula)
-    cross = (d1 * h2 - d2 * h1).abs() ** 2
+    h1, h2, d1, d2 = otf_jacobian(camera, model, q, nuisances, dq)
+    c = d1 * h2 - d2 * h1  # (P, T, T)
+    cross = (c[:, None] * c.conj()[None]).real  # (P, P, T, T)
     a1, a2 = h1.abs() ** 2, h2.abs() ** 2
     x = sharp.double() * scale
     tiles = x.unfold(0, TILE, STRIDE).unfold(1, TILE, STRIDE)  # (h, w, T, T)
@@ -128,8 +230,94 @@ def plane_information(camera: Camera, sharp: torch.Tensor, depth_m: float, param
     # frame 2 has the same mean level (blur keeps the mean); the two frames' noise is alike
     spec = torch.fft.fft2(tiles - mean[..., None, None]).abs() ** 2  # |S(u)|^2, DC removed
     nu = (TILE * TILE) * var
-    info_bin = 2.0 * spec * cross / (nu[..., None, None] * (a1 + a2)).clamp_min(1e-300)
-    return 0.5 * info_bin.sum((-1, -2))  # the spectrum of a real tile counts each bin twice
+    weight = 2.0 * spec / (nu[..., None, None] * (a1 + a2)).clamp_min(1e-300)
+    return 0.5 * torch.einsum("hwuv,jkuv->hwjk", weight, cross)  # a real tile's spectrum counts each bin twice
+
+
+def psf_prior_variance(cfg: SynthConfig, camera: Camera) -> torch.Tensor:
+    """Variance ``(5,)`` of each :data:`PSF_NUISANCES` coordinate over ``data_synth``'s draws
+    (:func:`data_synth.params.draw_psf`): the spread that an estimator knows in advance."""
+    moments = []  # (E kappa, E kappa^2) of each shape
+    for shape in cfg.psf_shapes:
+        if shape == "beta":
+            b0, b1 = cfg.beta_range
+            span = math.log(b1 / b0)
+            moments.append(((1 / b0 - 1 / b1) / span, (1 / b0**2 - 1 / b1**2) / (2 * span)))
+        else:
+            k = 0.5 if shape == "gaussian" else 0.0 if shape == "pillbox" else 1.0 / float(shape)
+            moments.append((k, k * k))
+    mean_k = sum(m for m, _ in moments) / len(moments)
+    var_k = sum(m2 for _, m2 in moments) / len(moments) - mean_k**2
+    f_number = camera.focal_lengths_m[0] / camera.aperture_m
+    lam = torch.linspace(*cfg.wavelength_range_m, 201, dtype=torch.float64)
+    t = torch.tensor([diffraction_sigma_px(f_number, float(v), camera.pixel_pitch_m) ** 2 for v in lam])
+    p = cfg.diffraction_prob
+    var_t = p * float((t**2).mean()) - (p * float(t.mean())) ** 2
+    pa = cfg.aberration_prob
+    var_ast = pa * cfg.astigmatism_max**2 / 3.0 / 2.0  # a uniform in [0, max], angle uniform
+    var_sph = pa * cfg.spherical_max**2 / 3.0
+    return torch.tensor([var_k, var_t, var_ast, var_ast, var_sph], dtype=torch.float64)
+
+
+def depth_variances(fisher: torch.Tensor, prior_var: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Cramér-Rao variances of ``q`` (1/m^2) of a plane's tiles, four ways.
+
+    Args:
+        fisher: ``(h, w, 6, 6)`` from :func:`plane_fisher` (``q`` first, then the nuisances).
+        prior_var: ``(5,)`` from :func:`psf_prior_variance`; its inverse is added to the
+            nuisances' information (a Gaussian stand-in for ``data_synth``'s prior).
+
+    Returns:
+        ``tile_known`` ``(h, w)``: PSF known; ``tile_shared`` ``(h, w)``: depth per tile, PSF
+        unknown but common to the image (learnt from its 16 disjoint tiles, the tile itself
+        included); ``tile_unknown`` ``(h, w)``: PSF learnt from the tile alone; and for the whole
+        plane (one depth, 16 disjoint tiles) ``plane_known`` and ``plane_unknown`` (scalars).
+    """
+    jqq, jqn, jnn = fisher[..., 0, 0], fisher[..., 0, 1:], fisher[..., 1:, 1:]
+    disjoint = fisher[::2, ::2].reshape(-1, 6, 6)
+    # nuisance information left once each disjoint tile's own depth is projected out
+    left = disjoint[:, 1:, 1:] - disjoint[:, 1:, :1] * disjoint[:, :1, 1:] / disjoint[:, :1, :1].clamp_min(1e-300)
+    cov_n = torch.linalg.inv(left.sum(0) + torch.diag(1.0 / prior_var))
+    b = jqn / jqq.clamp_min(1e-300)[..., None]  # (h, w, 5)
+    plane = disjoint.sum(0)
+    return {
+        "tile_known": 1.0 / jqq.clamp_min(1e-300),
+        "tile_shared": 1.0 / jqq.clamp_min(1e-300) + torch.einsum("hwi,ij,hwj->hw", b, cov_n, b),
+        "tile_unknown": _schur_variance(fisher, prior_var),
+        "plane_known": 1.0 / plane[0, 0],
+        "plane_unknown": _schur_variance(plane, prior_var),
+    }
+
+
+def _schur_variance(fisher: torch.Tensor, prior_var: torch.Tensor) -> torch.Tensor:
+    """``[(J + prior)^-1]_qq`` as ``1 / (J_qq - J_qn (J_nn + prior)^-1 J_nq)``: finite (huge)
+    for a tile without information, where the whole matrix would be singular."""
+    jnn = fisher[..., 1:, 1:] + torch.diag(1.0 / prior_var)
+    jnq = fisher[..., 1:, :1]
+    lost = (jnq.transpose(-1, -2) @ torch.linalg.solve(jnn, jnq))[..., 0, 0]
+    return 1.0 / (fisher[..., 0, 0] - lost).clamp_min(1e-300)
+
+
+def median_at_bound(std: torch.Tensor) -> float:
+    """Median of ``|e|`` over tiles whose errors ``e`` are normal with standard deviations ``std``.
+
+    The score on this benchmark (a median over tiles) of an unbiased estimator that reaches
+    the bound on every tile: the ``m`` at which the tiles' mean ``P(|e| <= m)`` is one half.
+
+    Example:
+        >>> round(median_at_bound(torch.tensor([1.0, 1.0])), 4)  # one normal: 0.6745 sigma
+        0.6745
+    """
+    std = std.double().flatten().clamp_min(1e-300)
+    # 99 % of the tiles all but surely lie within 10 of their 99th-percentile sigmas
+    lo, hi = 0.0, 10.0 * float(std.quantile(0.99))
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        if float(torch.erf(mid / (std * math.sqrt(2.0))).mean()) < 0.5:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -144,23 +332,20 @@ def main(argv: list[str] | None = None) -> int:
     ev = EvalConfig(samples=args.samples, seed=BENCH_SEED, height=args.size, width=args.size)
     ds = DefocusPairDataset(size=args.size, camera=camera, seed=BENCH_SEED, tile=TILE, stride=STRIDE,
                             return_sharp=True, **ev.options)
+    prior_var = psf_prior_variance(SynthConfig(), camera)
     t0 = time.perf_counter()
-    rows = []  # per plane: depth, per-tile bounds (list), plane bound
+    rows = []  # per plane: depth, per-tile relative std (three ways), plane relative std (two ways)
     for i in tqdm(range(args.samples), desc="bound", mininterval=5.0):
         s = ds[i]
         prm = s["params"]
         if prm["layout"] != "plane":
             continue
         d = float(s["tile_depth"].median())
-        info = plane_information(camera, s["sharp"][0], d, prm)
-        tile_rel = (1.0 / info.clamp_min(1e-300).sqrt()) * d  # std of q / q = relative depth std
-        # disjoint 64x64 tiles (every other grid cell) add up to the whole plane's information
-        plane_rel = float((1.0 / info[::2, ::2].sum().sqrt()) * d)
-        rows.append({"depth": d, "tiles": (MEDIAN_ABS * tile_rel).flatten(), "plane": MEDIAN_ABS * plane_rel})
+        var = depth_variances(plane_fisher(camera, s["sharp"][0], d, prm), prior_var)
+        rel = {k: (v.sqrt() * d).flatten() for k, v in var.items()}  # std of q / q = relative depth std
+        rows.append({"depth": d, **rel})
     wall = time.perf_counter() - t0
     keep = [r for r in rows if 0.3 <= r["depth"] <= 1.0]
-    all_tiles = torch.cat([r["tiles"] for r in keep])
-    planes = torch.tensor([r["plane"] for r in keep])
 
     measured = None
     if args.model:
@@ -169,31 +354,35 @@ def main(argv: list[str] | None = None) -> int:
     def pct(x: float) -> str:
         return f"{100 * x:.2f} %"
 
+    def gather(sel: list[dict], key: str) -> torch.Tensor:
+        return torch.cat([r[key] for r in sel])
+
     table = []
     for lo, hi in BINS:
         sel = [r for r in keep if lo <= r["depth"] < hi or (hi == 1.0 and r["depth"] == 1.0)]
         if not sel:
             continue
-        t = torch.cat([r["tiles"] for r in sel])
-        pl = torch.tensor([r["plane"] for r in sel])
-        row = [f"{lo:.2f}-{hi:.2f}", len(sel), pct(float(t.median())), f"{100 * float((t <= 0.01).double().mean()):.0f} %",
-               pct(float(pl.median()))]
+        row = [f"{lo:.2f}-{hi:.2f}", len(sel)] + [pct(MEDIAN_ABS * float(gather(sel, k).median())) for k in VARIANTS]
         if measured is not None:
             tr = measured["true"]
             m = (tr >= lo) & ((tr < hi) if hi < 1.0 else (tr <= hi))
             row += [pct(float(depth_relative_error(measured[k], tr)[m].median())) for k in ("refined", "analytic")]
         table.append(row)
-    summary = {"planes": len(keep), "tiles": int(all_tiles.numel()),
-               "tile_bound_median": float(all_tiles.median()), "tile_bound_share_le_1pct": float((all_tiles <= 0.01).double().mean()),
-               "plane_bound_median": float(planes.median()), "plane_bound_share_le_1pct": float((planes <= 0.01).double().mean()),
-               "wall_s": round(wall, 1)}
+    summary: dict = {"planes": len(keep), "tiles": int(gather(keep, "tile_known").numel()), "wall_s": round(wall, 1)}
+    for k in VARIANTS:
+        std = gather(keep, k)
+        summary[f"{k}_median"] = MEDIAN_ABS * float(std.median())
+        summary[f"{k}_share_le_1pct"] = float((MEDIAN_ABS * std <= 0.01).double().mean())
+        if k.startswith("tile"):
+            summary[f"{k}_score_at_bound"] = median_at_bound(std)
     if measured is not None:
         tr = measured["true"]
         m = (tr >= 0.3) & (tr <= 1.0)
         for k in ("refined", "analytic"):
             summary[f"{k}_median"] = float(depth_relative_error(measured[k], tr)[m].median())
     print(json.dumps(summary, indent=2))
-    header = ["distance (m)", "planes", "bound per tile: median", "tiles whose bound <= 1 %", "bound per plane: median"]
+    header = ["distance (m)", "planes", "per tile, PSF known", "per tile, PSF shared by the image",
+              "per tile, PSF from the tile alone", "per plane, PSF known", "per plane, PSF unknown"]
     if measured is not None:
         header += ["refined, measured", "analytic, measured"]
     for row in table:
@@ -203,21 +392,39 @@ def main(argv: list[str] | None = None) -> int:
     body = (
         f"The refinement benchmark's {len(keep)} held-out planes in 0.3-1.0 m ({summary['tiles']} tiles of 64 px, "
         f"first {args.samples} samples, seed {BENCH_SEED}, full realism; see `refinement`). For each plane the Fisher "
-        "information that its two noisy frames carry about the inverse depth, with the sample's own PSF (shape, "
-        "diffraction, aberration), the sensor's shot, read and quantisation noise at each tile's mean level, and the "
-        "texture unknown per spatial frequency. Its Cramér-Rao bound, as a median absolute relative depth error "
-        "(0.674 sigma), is what an unbiased estimator cannot beat; the bound is optimistic (the PSF shape and noise "
-        "levels known; no clipping, vignetting, breathing or misregistration). *Per tile*: one 64x64 tile's "
-        "information; *per plane*: the whole plane's (16 disjoint tiles), which bounds even an estimator that pools "
-        "every tile of a fronto-parallel plane.\n\n"
+        "information that its two noisy frames carry about the inverse depth, with the sample's own PSF, the "
+        "sensor's shot, read and quantisation noise at each tile's mean level, and the texture unknown per spatial "
+        "frequency. Its Cramér-Rao bound, as a median absolute relative depth error (0.674 sigma), is what an "
+        "unbiased estimator cannot beat. The PSF that `data_synth` draws for each sample (shape "
+        "`kappa = 1/beta` between pillbox and Gaussian, diffraction, astigmatism, spherical aberration) is either "
+        "known, or a nuisance that the estimator must learn from the frames, with `data_synth`'s spread of each "
+        "parameter as prior information (a Gaussian of the same variance):\n\n"
+        "- *per tile, PSF known*: one 64x64 tile's information, the PSF given;\n"
+        "- *per tile, PSF shared by the image*: a depth per tile, the PSF unknown but common to the whole image and "
+        "learnt from all its tiles (what a scene-agnostic estimator such as the CNN can at best do);\n"
+        "- *per tile, PSF from the tile alone*: the tile's depth and PSF from that tile only;\n"
+        "- *per plane*: one depth for the whole plane (16 disjoint tiles), which bounds only an estimator that "
+        "assumes the whole view is one fronto-parallel plane.\n\n"
+        "A common blur of both frames (the diffraction) drops out of their ratio and costs nothing. The bounds "
+        "remain optimistic: the noise levels known; no clipping, vignetting, breathing, misregistration or frame "
+        "gain jitter (a frame's gain is pinned by its mean level, which blur keeps). The PSFs are sampled "
+        f"{SUPERSAMPLE}x per pixel and side, so that their derivatives in the shape are smooth (the renderer's "
+        "pixel-centre samples of hard-edged shapes jump as pixels cross the edge); with the renderer's own "
+        "sampling the PSF-known bound was 1.00 % rather than 1.05 %.\n\n"
         + markdown_table(header, table) + "\n\n"
-        f"- Bound per tile, median over all tiles: **{pct(summary['tile_bound_median'])}**; tiles whose bound is at "
-        f"most 1 %: {100 * summary['tile_bound_share_le_1pct']:.0f} %.\n"
-        f"- Bound per plane, median over planes: **{pct(summary['plane_bound_median'])}**; planes whose bound is at "
-        f"most 1 %: {100 * summary['plane_bound_share_le_1pct']:.0f} %.\n"
+        "Medians over all tiles (per plane: over planes); *at the bound*: the median absolute error that an "
+        "unbiased estimator reaching the bound on every tile would score on this benchmark (the median of the "
+        "mixture of the tiles' normal errors):\n\n"
+        + markdown_table(["bound", "median", "at the bound", "share <= 1 %"], [
+            [name, pct(summary[f"{k}_median"]),
+             pct(summary[f"{k}_score_at_bound"]) if k.startswith("tile") else "-",
+             f"{100 * summary[f'{k}_share_le_1pct']:.0f} %"]
+            for k, name in zip(VARIANTS, ("per tile, PSF known", "per tile, PSF shared by the image",
+                                          "per tile, PSF from the tile alone", "per plane, PSF known",
+                                          "per plane, PSF unknown"))]) + "\n"
     )
     if measured is not None:
-        body += (f"- Measured on the same tiles (`{Path(args.model).name}`): refined {pct(summary['refined_median'])}, "
+        body += (f"\nMeasured on the same tiles (`{Path(args.model).name}`): refined {pct(summary['refined_median'])}, "
                  f"analytic {pct(summary['analytic_median'])}.\n")
     body += f"\nWall time: {wall:.0f} s.\n"
     update_section("bound", "Information bound on the refinement benchmark (Cramér-Rao)", body,

@@ -11,6 +11,7 @@ from data_synth import PSFModel, render_frames, warp_pair
 from data_synth.psf import batch_kernel_fn
 from tdfd.textures import fractal
 from tdfd import Camera
+from tdfd.errors import InputError
 from tdfd.optics import (camera_blur_radii_px, camera_sigmas, defocus_layered, defocus_layered_multi, defocus_uniform,
                          psf_second_moment, render_pair, sigma_map)
 
@@ -91,6 +92,30 @@ def test_psf_variants_sum_to_one_keep_their_size_and_are_deltas_at_focus(model):
     # a float32 kernel at zero blur stays finite (large power-exponential beta)
     k32 = PSFModel(15.0).kernels(torch.tensor([0.0, 0.2]))
     assert bool(torch.isfinite(k32).all())
+
+
+@pytest.mark.parametrize("shape", ["gaussian", "pillbox", 12.0])
+def test_supersampled_kernels_keep_sum_and_size(shape):
+    s = torch.tensor([0.0, 2.0, -3.0], dtype=torch.float64)
+    model = PSFModel(shape, diffraction_sigma_px=0.4)
+    fine = model.kernels(s, supersample=9)
+    assert fine.shape == model.kernels(s).shape
+    assert torch.allclose(fine.sum((-1, -2)), torch.ones(3, dtype=torch.float64), atol=1e-9)
+    var = psf_second_moment(fine[1:]) + psf_second_moment(fine[1:].transpose(-1, -2))
+    assert torch.allclose(var, 2 * (s[1:] ** 2 + 1 / 12 + 0.16), rtol=0.06)
+    with pytest.raises(InputError, match="odd"):
+        model.kernels(s, supersample=4)
+
+
+def test_supersampled_kernels_vary_smoothly_with_the_shape():
+    # kappa = 1 / beta -> 0 approaches the pillbox: the kernel's change per step of kappa
+    # should shrink smoothly there. Pixel-centre samples of the hard-edged profile jump by
+    # about the same amount at every step (pixels crossing the edge); 9x supersampled, not.
+    s = torch.tensor([-2.73], dtype=torch.float64)
+    kappas = (0.005, 0.01, 0.015, 0.02, 0.025, 0.03, 0.035)
+    ks = [PSFModel(1 / k).kernels(s, size=15, supersample=9) for k in kappas]
+    steps = [float((b - a).abs().sum()) for a, b in zip(ks, ks[1:])]
+    assert all(b > a for a, b in zip(steps, steps[1:])) and steps[0] < 0.5 * steps[-1]
 
 
 def test_astigmatism_swaps_axes_across_focus():
