@@ -260,7 +260,7 @@ def psf_prior_variance(cfg: SynthConfig, camera: Camera) -> torch.Tensor:
 
 
 def depth_variances(fisher: torch.Tensor, prior_var: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Cramér-Rao variances of ``q`` (1/m^2) of a plane's tiles, four ways.
+    """Cramér-Rao variances of ``q`` (1/m^2) of a plane's tiles and of the whole plane, five ways.
 
     Args:
         fisher: ``(h, w, 6, 6)`` from :func:`plane_fisher` (``q`` first, then the nuisances).
@@ -269,11 +269,11 @@ def depth_variances(fisher: torch.Tensor, prior_var: torch.Tensor) -> dict[str, 
 
     Returns:
         ``tile_known`` ``(h, w)``: PSF known; ``tile_shared`` ``(h, w)``: depth per tile, PSF
-        unknown but common to the image (learnt from its 16 disjoint tiles, the tile itself
-        included); ``tile_unknown`` ``(h, w)``: PSF learnt from the tile alone; and for the whole
+        unknown but common to the image (learnt from its 16 disjoint tiles, each with its own
+        depth); ``tile_unknown`` ``(h, w)``: PSF learnt from the tile alone; and for the whole
         plane (one depth, 16 disjoint tiles) ``plane_known`` and ``plane_unknown`` (scalars).
     """
-    jqq, jqn, jnn = fisher[..., 0, 0], fisher[..., 0, 1:], fisher[..., 1:, 1:]
+    jqq, jqn = fisher[..., 0, 0], fisher[..., 0, 1:]
     disjoint = fisher[::2, ::2].reshape(-1, 6, 6)
     # nuisance information left once each disjoint tile's own depth is projected out
     left = disjoint[:, 1:, 1:] - disjoint[:, 1:, :1] * disjoint[:, :1, 1:] / disjoint[:, :1, :1].clamp_min(1e-300)
