@@ -93,8 +93,10 @@ PSF_NUISANCES = ("shape", "diffraction", "astig_c", "astig_s", "spherical")
 #: pixel centres jumps as pixels cross its edge).
 SUPERSAMPLE = 9
 NUISANCE_STEPS = {"shape": 0.01, "astig_c": 0.01, "astig_s": 0.01, "spherical": 0.02}
-#: The bounds of :func:`depth_variances` that the benchmark reports, in table order.
-VARIANTS = ("tile_known", "tile_shared", "tile_unknown", "plane_known", "plane_unknown")
+#: The bounds of :func:`depth_variances` that the benchmark reports, in table order, with their labels.
+VARIANTS = {"tile_known": "per tile, PSF known", "tile_shared": "per tile, PSF shared by the image",
+            "tile_unknown": "per tile, PSF from the tile alone", "plane_known": "per plane, PSF known",
+            "plane_unknown": "per plane, PSF unknown"}
 BINS = ((0.30, 0.40), (0.40, 0.50), (0.50, 0.60), (0.60, 0.70), (0.70, 0.80), (0.80, 0.90), (0.90, 1.00))
 
 
@@ -274,7 +276,7 @@ def depth_variances(fisher: torch.Tensor, prior_var: torch.Tensor) -> dict[str, 
         plane (one depth, 16 disjoint tiles) ``plane_known`` and ``plane_unknown`` (scalars).
     """
     jqq, jqn = fisher[..., 0, 0], fisher[..., 0, 1:]
-    disjoint = fisher[::2, ::2].reshape(-1, 6, 6)
+    disjoint = fisher[::2, ::2].reshape(-1, *fisher.shape[-2:])
     # nuisance information left once each disjoint tile's own depth is projected out
     left = disjoint[:, 1:, 1:] - disjoint[:, 1:, :1] * disjoint[:, :1, 1:] / disjoint[:, :1, :1].clamp_min(1e-300)
     cov_n = torch.linalg.inv(left.sum(0) + torch.diag(1.0 / prior_var))
@@ -379,7 +381,7 @@ def main(argv: list[str] | None = None) -> int:
             shared = signed[idx].median(1).values.abs()  # the error every tile of the plane shares
             families.append([name, len(sel), pct(MEDIAN_ABS * float(gather(sel, "tile_shared").median())),
                              pct(float(signed[idx].abs().median())),
-                             pct(MEDIAN_ABS * float(torch.stack([r["plane_unknown"] for r in sel]).median())),
+                             pct(MEDIAN_ABS * float(gather(sel, "plane_unknown").median())),
                              pct(float(shared.median()))])
     summary: dict = {"planes": len(keep), "tiles": int(gather(keep, "tile_known").numel()), "wall_s": round(wall, 1)}
     for k in VARIANTS:
@@ -394,8 +396,7 @@ def main(argv: list[str] | None = None) -> int:
         for k in ("refined", "analytic"):
             summary[f"{k}_median"] = float(depth_relative_error(measured[k], tr)[m].median())
     print(json.dumps(summary, indent=2))
-    header = ["distance (m)", "planes", "per tile, PSF known", "per tile, PSF shared by the image",
-              "per tile, PSF from the tile alone", "per plane, PSF known", "per plane, PSF unknown"]
+    header = ["distance (m)", "planes", *VARIANTS.values()]
     if measured is not None:
         header += ["refined, measured", "analytic, measured"]
     for row in table:
@@ -432,9 +433,7 @@ def main(argv: list[str] | None = None) -> int:
             [name, pct(summary[f"{k}_median"]),
              pct(summary[f"{k}_score_at_bound"]) if k.startswith("tile") else "-",
              f"{100 * summary[f'{k}_share_le_1pct']:.0f} %"]
-            for k, name in zip(VARIANTS, ("per tile, PSF known", "per tile, PSF shared by the image",
-                                          "per tile, PSF from the tile alone", "per plane, PSF known",
-                                          "per plane, PSF unknown"))]) + "\n"
+            for k, name in VARIANTS.items()]) + "\n"
     )
     if measured is not None:
         body += (f"\nMeasured on the same tiles (`{Path(args.model).name}`): refined {pct(summary['refined_median'])}, "
