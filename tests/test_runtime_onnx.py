@@ -14,7 +14,6 @@ import pytest
 from onnx import TensorProto, helper
 
 from export import realistic_pairs
-from export.testing import session_onnx_model
 from tdfd import Camera
 from tdfd.errors import DTypeError, ModelError, NonFiniteError, RangeError, ShapeError
 from tdfd.runtime import DepthResult, DepthRuntime, default_model_path, in_focus_power_dpt, resample_to_image
@@ -23,8 +22,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def exported(tmp_path_factory):
-    return session_onnx_model(tmp_path_factory)
+def exported(exported_onnx):
+    return exported_onnx
 
 
 @pytest.fixture(scope="module")
