@@ -50,7 +50,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("image_f1", help="frame at the first ECVFL power (PNG/TIFF)")
     p.add_argument("image_f2", help="frame at the second ECVFL power (PNG/TIFF)")
     p.add_argument("--model", default=None,
-                   help="ONNX model (default: $TDFD_MODEL, else models/reference.onnx of the tdfd checkout)")
+                   help="ONNX model (default: $TDFD_MODEL, else the model shipped with tdfd)")
     p.add_argument("-o", "--output", default=None,
                    help="depth map to write: .npy / .tif(f) float32 metres, .png uint16 millimetres; "
                         "also writes <stem>_color.png")

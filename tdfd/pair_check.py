@@ -27,7 +27,7 @@ Example:
     >>> pair_problem(f, f)
     'frames are identical: the lens did not move'
     >>> pair_problem(f, np.zeros_like(f))
-    'second frame is black (brightest pixel 0 % of full scale)'
+    'second frame is black (brightest pixel 0% of full scale)'
     >>> pair_problem(f, np.clip(f + 0.01, 0, 1)) is None
     True
 """

@@ -45,6 +45,7 @@ __all__ = [
     "DepthRuntime",
     "DepthResult",
     "default_model_path",
+    "SHIPPED_MODEL",
     "tile_centres",
     "resample_to_image",
     "in_focus_power_dpt",
@@ -72,15 +73,21 @@ _FLOAT_TOLERANCE = 1e-6  # float inputs may exceed [0, 1] by rounding only
 DEFAULT_CONFIDENCE_THRESHOLD = 0.1
 
 
+#: The model shipped inside the package (package data; in a source checkout a link to
+#: ``models/reference.onnx``).
+SHIPPED_MODEL = Path(__file__).resolve().parent / "assets" / "reference.onnx"
+
+
 def default_model_path() -> Path:
     """The model used when none is given.
 
-    Looked up in order: ``$TDFD_MODEL``; ``models/reference.onnx`` next to the package
-    (``<repo>/models`` for a source checkout or editable install); ``models/reference.onnx``
-    in the working directory.
+    Looked up in order: ``$TDFD_MODEL``; the model shipped in the package,
+    ``tdfd/assets/reference.onnx`` (installed as package data by ``pip install``; in a
+    source checkout a link to ``models/reference.onnx``, which is returned); then
+    ``models/reference.onnx`` in the working directory.
 
     Raises:
-        ModelError: none of them exists (the message lists where it looked).
+        ModelError: none of them exists (one line: where it looked and how to name a model).
     """
     env = os.environ.get(DEFAULT_MODEL_ENV)
     if env:
@@ -88,12 +95,11 @@ def default_model_path() -> Path:
         if not p.is_file():
             raise ModelError(f"${DEFAULT_MODEL_ENV} names {p}, which does not exist")
         return p
-    candidates = [Path(__file__).resolve().parents[1] / "models" / "reference.onnx",
-                  Path.cwd() / "models" / "reference.onnx"]
+    candidates = [SHIPPED_MODEL, Path.cwd() / "models" / "reference.onnx"]
     for p in candidates:
         if p.is_file():
-            return p
-    raise ModelError("no model found: pass --model/model_path or set $TDFD_MODEL (looked for "
+            return p.resolve()
+    raise ModelError("no model found: name one with --model PATH (Python: model_path=) or $TDFD_MODEL (looked for "
                      + ", ".join(str(c) for c in candidates) + ")")
 
 

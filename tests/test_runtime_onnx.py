@@ -233,12 +233,13 @@ def test_default_model_path(monkeypatch, tmp_path, exported):
         default_model_path()
     monkeypatch.delenv("TDFD_MODEL")
     shipped = ROOT / "models" / "reference.onnx"
-    if shipped.is_file():
-        assert default_model_path() == shipped
-    else:
-        monkeypatch.chdir(tmp_path)
-        with pytest.raises(ModelError, match="no model found"):
-            default_model_path()
+    assert default_model_path() == shipped  # through the package's tdfd/assets link
+    monkeypatch.setattr("tdfd.runtime.SHIPPED_MODEL", tmp_path / "not_installed.onnx")
+    monkeypatch.chdir(ROOT)
+    assert default_model_path() == shipped  # models/ of the working directory
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ModelError, match=r"no model found: name one with --model PATH .* or \$TDFD_MODEL"):
+        default_model_path()
 
 
 def test_runtime_imports_no_torch(exported):
