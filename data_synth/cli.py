@@ -8,7 +8,9 @@ Example::
 
 Writes shards, ``manifest.json`` (format, tdfd version, seed, config, camera, shard list with
 SHA-256), ``camera.json``, ``contact_sheet.png`` and, with ``--png16``, 16-bit PNG pairs
-for ``tdfd depth``. The same arguments give the same bytes.
+for ``tdfd depth``. The same arguments give the same bytes. The old manifest goes before
+the first shard is written and the new one is written last (atomically), so a run killed
+midway leaves no manifest at all.
 """
 
 from __future__ import annotations
@@ -23,11 +25,12 @@ from typing import Sequence
 import torch
 
 from tdfd import Camera
+from tdfd.atomic_io import atomic_write_text
 from tdfd.errors import TdfdError
 
 from .dataset import DefocusPairDataset
 from .params import LAYOUTS, PSF_SHAPES, SynthConfig
-from .writer import ShardWriter, contact_sheet, manifest, write_png16_pair
+from .writer import ShardWriter, contact_sheet, manifest, write_manifest, write_png16_pair
 
 __all__ = ["main", "build_parser", "parse_size", "load_camera"]
 
@@ -127,14 +130,14 @@ def run(args: argparse.Namespace) -> dict:
         if len(sheet) < args.contact_sheet:
             sheet.append(sample)
     writer.flush()
-    (out / "camera.json").write_text(camera.to_json() + "\n")
+    atomic_write_text(out / "camera.json", camera.to_json() + "\n")
     sheet_name = None
     if sheet:
         sheet_name = "contact_sheet.png"
         contact_sheet(sheet, out / sheet_name, camera)
     man = manifest(args.seed, args.count, ds.size, camera, {**ds.config.to_dict(), "start": args.start},
                    writer.shards, args.png16, sheet_name)
-    (out / "manifest.json").write_text(json.dumps(man, indent=2, sort_keys=True) + "\n")
+    write_manifest(out, man)  # last: the ShardWriter removed the old one before the first shard
     logger.info("wrote %d samples in %d shards to %s", args.count, len(writer.shards), out)
     return man
 

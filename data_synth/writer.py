@@ -16,6 +16,14 @@ A shard holds ``image_f1``, ``image_f2`` (``(N, 1, H, W)``; ``uint16`` raw codes
 ``(N,)`` int64; its metadata (one key, ``tdfd``, a JSON object) holds the format tag, the
 image encoding and the samples' ``params``. :func:`load_shard` and
 :class:`ShardDataset` read them back as float32 tensors.
+
+Crash safety: every file is written atomically (:mod:`tdfd.atomic_io`: temporary file,
+fsync, ``os.replace``), a :class:`ShardWriter` removes the old ``manifest.json`` *before*
+it writes its first shard (:func:`invalidate_manifest`) and the new one is written last
+(:func:`write_manifest`), so a run killed midway leaves a directory without a manifest,
+which :class:`ShardDataset` refuses, rather than an old manifest over new shards. The next
+run removes the temporary files a killed one left. :class:`ShardDataset` checks each
+shard's SHA-256 against the manifest the first time it reads it.
 """
 
 from __future__ import annotations
@@ -32,16 +40,42 @@ import torch
 
 import tdfd
 from tdfd import Camera
+from tdfd.atomic_io import atomic_write_bytes, atomic_write_text, remove_orphans
 from tdfd.errors import InputError
 
-__all__ = ["FORMAT", "ShardWriter", "load_shard", "ShardDataset", "write_png16_pair", "contact_sheet",
-           "sha256_file"]
+__all__ = ["FORMAT", "MANIFEST_NAME", "ShardWriter", "load_shard", "ShardDataset", "write_png16_pair",
+           "contact_sheet", "sha256_file", "invalidate_manifest", "write_manifest", "ShardIntegrityError"]
 
 logger = logging.getLogger(__name__)
 
 #: Manifest format tag.
 FORMAT = "tdfd-synth/1"
 SHARD_FORMAT = "tdfd-synth-shard/1"
+#: The manifest's file name in an output directory.
+MANIFEST_NAME = "manifest.json"
+
+
+class ShardIntegrityError(InputError):
+    """A data set on disk that does not match its manifest (missing, changed or torn shard)."""
+
+
+def invalidate_manifest(out_dir: str | os.PathLike) -> bool:
+    """Remove ``manifest.json`` from ``out_dir`` (before any shard is rewritten).
+
+    Returns:
+        Whether there was one.
+    """
+    try:
+        (Path(out_dir) / MANIFEST_NAME).unlink()
+    except FileNotFoundError:
+        return False
+    logger.info("removed the old %s of %s before writing new shards", MANIFEST_NAME, out_dir)
+    return True
+
+
+def write_manifest(out_dir: str | os.PathLike, content: dict[str, Any]) -> Path:
+    """Write ``manifest.json`` atomically (the last file of a run)."""
+    return atomic_write_text(Path(out_dir) / MANIFEST_NAME, json.dumps(content, indent=2, sort_keys=True) + "\n")
 
 
 def sha256_file(path: str | os.PathLike) -> str:
@@ -68,6 +102,10 @@ def _codes(images: torch.Tensor, white: torch.Tensor) -> np.ndarray | None:
 class ShardWriter:
     """Accumulates samples and writes a shard every ``shard_size`` samples.
 
+    Creating one removes the directory's old ``manifest.json`` (it will no longer describe
+    the shards) and the temporary files an interrupted run left. Shards are written
+    atomically; write the new manifest with :func:`write_manifest` when all are done.
+
     Args:
         out_dir: output directory (created).
         shard_size: samples per shard.
@@ -78,6 +116,8 @@ class ShardWriter:
             raise InputError(f"shard size must be >= 1, got {shard_size}")
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
+        invalidate_manifest(self.out)
+        remove_orphans(self.out)
         self.shard_size = int(shard_size)
         self.buffer: list[dict[str, Any]] = []
         self.shards: list[dict[str, Any]] = []
@@ -91,7 +131,7 @@ class ShardWriter:
         """Write the buffered samples as one shard (no-op if empty)."""
         if not self.buffer:
             return
-        from safetensors.numpy import save_file
+        from safetensors.numpy import save
 
         items, self.buffer = self.buffer, []
         name = f"shard_{len(self.shards):05d}.safetensors"
@@ -117,9 +157,10 @@ class ShardWriter:
         meta = {"tdfd": json.dumps({"format": SHARD_FORMAT, "image_encoding": encoding, "params": params},
                                    sort_keys=True)}
         path = self.out / name
-        save_file({k: np.ascontiguousarray(v) for k, v in tensors.items()}, str(path), metadata=meta)
+        data = save({k: np.ascontiguousarray(v) for k, v in tensors.items()}, metadata=meta)
+        atomic_write_bytes(path, data)
         self.shards.append({"file": name, "first_index": int(params[0]["index"]), "count": len(items),
-                            "image_encoding": encoding, "sha256": sha256_file(path)})
+                            "image_encoding": encoding, "sha256": hashlib.sha256(data).hexdigest()})
         logger.info("wrote %s (%d samples)", path, len(items))
 
 
@@ -151,19 +192,56 @@ def load_shard(path: str | os.PathLike) -> dict[str, Any]:
 
 class ShardDataset(torch.utils.data.Dataset):
     """The samples of a directory written by the CLI, in index order (items like
-    :class:`~data_synth.DefocusPairDataset`'s)."""
+    :class:`~data_synth.DefocusPairDataset`'s).
 
-    def __init__(self, out_dir: str | os.PathLike) -> None:
+    Args:
+        out_dir: the directory.
+        verify: check each shard's SHA-256 against the manifest the first time it is read
+            (default; costs about one read of the file).
+
+    Raises:
+        InputError: no readable manifest (none, or a run was interrupted before writing it).
+        ShardIntegrityError: (when an item is read) a shard that is missing or whose bytes
+            differ from the manifest's SHA-256; the message names the shard.
+    """
+
+    def __init__(self, out_dir: str | os.PathLike, verify: bool = True) -> None:
         self.root = Path(out_dir)
+        path = self.root / MANIFEST_NAME
+        if not path.is_file():
+            raise InputError(f"{self.root} has no {MANIFEST_NAME}: not a data set, or its writing was interrupted "
+                             f"(run python -m data_synth again)")
         try:
-            self.manifest = json.loads((self.root / "manifest.json").read_text())
+            self.manifest = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as exc:
-            raise InputError(f"cannot read {self.root / 'manifest.json'}: {exc}") from exc
-        if self.manifest.get("format") != FORMAT:
+            raise InputError(f"cannot read {path}: {exc}") from exc
+        if not isinstance(self.manifest, dict) or self.manifest.get("format") != FORMAT:
             raise InputError(f"{self.root} is not a {FORMAT} data set")
         self.shards = self.manifest["shards"]
         self.offsets = np.cumsum([0] + [s["count"] for s in self.shards])
+        self.verify = bool(verify)
+        self._verified: set[int] = set()
         self._cache: tuple[int, dict[str, Any]] | None = None
+
+    def check_shard(self, k: int) -> Path:
+        """Path of shard ``k`` after checking it exists and matches the manifest's SHA-256.
+
+        Raises:
+            ShardIntegrityError: missing, or different bytes.
+        """
+        entry = self.shards[k]
+        path = self.root / entry["file"]
+        if not path.is_file():
+            raise ShardIntegrityError(f"shard {entry['file']} of {self.root} is missing")
+        want = entry.get("sha256")
+        if want is None:
+            raise ShardIntegrityError(f"the manifest of {self.root} gives no sha256 for shard {entry['file']}")
+        got = sha256_file(path)
+        if got != want:
+            raise ShardIntegrityError(f"shard {entry['file']} of {self.root} does not match its manifest (sha256 "
+                                      f"{got[:12]}..., manifest {want[:12]}...): the data set was rewritten or damaged; "
+                                      f"generate it again")
+        return path
 
     def __len__(self) -> int:
         return int(self.offsets[-1])
@@ -175,6 +253,9 @@ class ShardDataset(torch.utils.data.Dataset):
             raise IndexError(i)
         k = int(np.searchsorted(self.offsets, i, side="right") - 1)
         if self._cache is None or self._cache[0] != k:
+            if self.verify and k not in self._verified:
+                self.check_shard(k)
+                self._verified.add(k)
             self._cache = (k, load_shard(self.root / self.shards[k]["file"]))
         data, j = self._cache[1], i - int(self.offsets[k])
         item = {key: data[key][j] for key in ("image_f1", "image_f2", "depth", "tile_depth")}

@@ -28,12 +28,13 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 from pathlib import Path
 from typing import Any
 
 from .errors import DTypeError, InputError, ShapeError
 
-__all__ = ["register", "read_frame", "write_depth", "colorize_depth", "run"]
+__all__ = ["register", "read_frame", "write_depth", "check_writable", "colorize_depth", "run"]
 
 logger = logging.getLogger(__name__)
 
@@ -49,7 +50,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("image_f1", help="frame at the first ECVFL power (PNG/TIFF)")
     p.add_argument("image_f2", help="frame at the second ECVFL power (PNG/TIFF)")
     p.add_argument("--model", default=None,
-                   help="ONNX model (default: $TDFD_MODEL, else models/reference.onnx of the tdfd checkout)")
+                   help="ONNX model (default: $TDFD_MODEL, else the model shipped with tdfd)")
     p.add_argument("-o", "--output", default=None,
                    help="depth map to write: .npy / .tif(f) float32 metres, .png uint16 millimetres; "
                         "also writes <stem>_color.png")
@@ -168,18 +169,46 @@ def write_depth(path: str | Path, depth: Any, confidence: Any, threshold: float 
     suffix = p.suffix.lower()
     if suffix not in _DEPTH_SUFFIXES:
         raise InputError(f"output {p} must end in one of {', '.join(_DEPTH_SUFFIXES)}")
-    p.parent.mkdir(parents=True, exist_ok=True)
     d = np.asarray(depth, dtype=np.float32)
     if suffix == ".npy":
-        np.save(p, d)
-        return p
+        return _write(p, lambda target: np.save(target, d))
     if suffix == ".png":
         mm = np.clip(np.round(d * 1000.0), 0, 65535).astype(np.uint16)
         mm[np.asarray(confidence) < threshold] = 0
-        ok = cv2.imwrite(str(p), mm)
-    else:
-        ok = cv2.imwrite(str(p), d)
-    if not ok:
+        return _write(p, lambda target: cv2.imwrite(str(target), mm))
+    return _write(p, lambda target: cv2.imwrite(str(target), d))
+
+
+def check_writable(path: str | Path) -> Path:
+    """Fail early (before any work) if ``path``'s folder cannot be created or written.
+
+    Raises:
+        InputError: the folder cannot be created, is not a folder, or is not writable.
+    """
+    p = Path(path)
+    parent = p.parent if str(p.parent) else Path(".")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot write {p}: {exc.strerror or exc}") from exc
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write {p}: folder {parent} is not writable")
+    if p.is_dir():
+        raise InputError(f"cannot write {p}: it is a folder")
+    return p
+
+
+def _write(p: Path, write: Any) -> Path:
+    """Run ``write(p)`` (returns ``False`` on failure, like ``cv2.imwrite``) with one typed error."""
+    import cv2
+
+    check_writable(p)
+    try:
+        ok = write(p)
+    except (OSError, cv2.error) as exc:
+        reason = getattr(exc, "strerror", None) or str(exc).strip().splitlines()[-1]
+        raise InputError(f"cannot write {p}: {reason}") from exc
+    if ok is False:
         raise InputError(f"cannot write {p}")
     return p
 
@@ -197,6 +226,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--threshold must be in [0, 1], got {args.threshold}")
     if not 0.0 < args.centre <= 1.0:
         raise InputError(f"--centre must be in (0, 1], got {args.centre}")
+    if args.output is not None:
+        check_writable(args.output)
     f1, f2 = read_frame(args.image_f1), read_frame(args.image_f2)
     if f1.shape != f2.shape:
         raise ShapeError(f"{args.image_f1} is {f1.shape[0]}x{f1.shape[1]} but {args.image_f2} is "
@@ -219,6 +250,8 @@ def run(args: argparse.Namespace) -> int:
         best = float(np.max(res.confidence[res._centre_mask(args.centre)]))
         print(f"centre depth: {loose:.4f} m UNRELIABLE (no cell in the central {args.centre:.0%} reaches confidence "
               f"{args.threshold:g}; best {best:.3g})")
+    if res.problem:
+        print(f"no DFD pair: {res.problem}; every cell has confidence 0")
     print(f"valid: {valid.mean():.1%} of {valid.size} cells (confidence >= {args.threshold:g}); "
           f"depth {np.nanmin(res.depth):.3f}-{np.nanmax(res.depth):.3f} m")
     if args.output:
@@ -226,9 +259,7 @@ def run(args: argparse.Namespace) -> int:
         out = full if args.full_resolution else res
         path = write_depth(args.output, out.depth, out.confidence, args.threshold)
         picture = colorize_depth(full.depth, full.confidence, rt.camera.depth_range_m, args.threshold)
-        pic = path.with_name(path.stem + "_color.png")
-        if not cv2.imwrite(str(pic), picture):
-            raise InputError(f"cannot write {pic}")
+        pic = _write(path.with_name(path.stem + "_color.png"), lambda target: cv2.imwrite(str(target), picture))
         print(f"wrote {path} ({'x'.join(map(str, out.depth.shape))} "
               f"{'uint16 mm' if path.suffix.lower() == '.png' else 'float32 m'}) and {pic}")
     return 0

@@ -39,15 +39,18 @@ import numpy as np
 
 from .camera import Camera
 from .errors import DTypeError, InputError, ModelError, NonFiniteError, RangeError, ShapeError
+from .pair_check import pair_problem
 
 __all__ = [
     "DepthRuntime",
     "DepthResult",
     "default_model_path",
+    "SHIPPED_MODEL",
     "tile_centres",
     "resample_to_image",
     "in_focus_power_dpt",
     "make_session",
+    "check_pairs",
     "DEFAULT_MODEL_ENV",
     "DEFAULT_OPTIMIZATION",
     "DEFAULT_CONFIDENCE_THRESHOLD",
@@ -70,15 +73,21 @@ _FLOAT_TOLERANCE = 1e-6  # float inputs may exceed [0, 1] by rounding only
 DEFAULT_CONFIDENCE_THRESHOLD = 0.1
 
 
+#: The model shipped inside the package (package data; in a source checkout a link to
+#: ``models/reference.onnx``).
+SHIPPED_MODEL = Path(__file__).resolve().parent / "assets" / "reference.onnx"
+
+
 def default_model_path() -> Path:
     """The model used when none is given.
 
-    Looked up in order: ``$TDFD_MODEL``; ``models/reference.onnx`` next to the package
-    (``<repo>/models`` for a source checkout or editable install); ``models/reference.onnx``
-    in the working directory.
+    Looked up in order: ``$TDFD_MODEL``; the model shipped in the package,
+    ``tdfd/assets/reference.onnx`` (installed as package data by ``pip install``; in a
+    source checkout a link to ``models/reference.onnx``, which is returned); then
+    ``models/reference.onnx`` in the working directory.
 
     Raises:
-        ModelError: none of them exists (the message lists where it looked).
+        ModelError: none of them exists (one line: where it looked and how to name a model).
     """
     env = os.environ.get(DEFAULT_MODEL_ENV)
     if env:
@@ -86,12 +95,11 @@ def default_model_path() -> Path:
         if not p.is_file():
             raise ModelError(f"${DEFAULT_MODEL_ENV} names {p}, which does not exist")
         return p
-    candidates = [Path(__file__).resolve().parents[1] / "models" / "reference.onnx",
-                  Path.cwd() / "models" / "reference.onnx"]
+    candidates = [SHIPPED_MODEL, Path.cwd() / "models" / "reference.onnx"]
     for p in candidates:
         if p.is_file():
-            return p
-    raise ModelError("no model found: pass --model/model_path or set $TDFD_MODEL (looked for "
+            return p.resolve()
+    raise ModelError("no model found: name one with --model PATH (Python: model_path=) or $TDFD_MODEL (looked for "
                      + ", ".join(str(c) for c in candidates) + ")")
 
 
@@ -167,6 +175,9 @@ class DepthResult:
         image_size: ``(H, W)`` of the input frames in pixels.
         tile, stride: the tile grid in pixels.
         full_resolution: whether the maps were resampled to ``(H, W)``.
+        problems: per pair (in batch order), why it is no DFD pair
+            (:func:`tdfd.pair_check.pair_problem`, e.g. ``"frames are identical: the lens did
+            not move"``) or ``None``; a pair with a problem has confidence 0 everywhere.
     """
 
     depth: np.ndarray
@@ -176,6 +187,12 @@ class DepthResult:
     tile: int
     stride: int
     full_resolution: bool = False
+    problems: tuple[str | None, ...] = ()
+
+    @property
+    def problem(self) -> str | None:
+        """The capture problem of a single pair (of the first pair with one in a batch), or ``None``."""
+        return next((p for p in self.problems if p), None)
 
     @property
     def grid_shape(self) -> tuple[int, int]:
@@ -214,7 +231,7 @@ class DepthResult:
         up = lambda x: resample_to_image(x, H, W, self.tile, self.stride)  # noqa: E731
         return DepthResult(depth=1.0 / up(1.0 / self.depth), confidence=up(self.confidence),
                            depth_analytic=1.0 / up(1.0 / self.depth_analytic), image_size=self.image_size,
-                           tile=self.tile, stride=self.stride, full_resolution=True)
+                           tile=self.tile, stride=self.stride, full_resolution=True, problems=self.problems)
 
     def centre_depth(self, fraction: float = 0.5, threshold: float = DEFAULT_CONFIDENCE_THRESHOLD) -> float | np.ndarray:
         """Median depth (metres) of the confident cells in the centre region.
@@ -250,7 +267,7 @@ def _as_images(name: str, image: Any, white_level: float | None) -> tuple[np.nda
         arr = image
     else:
         raise ShapeError(f"{name} must be (H, W), (1, H, W) or (N, 1, H, W) single-channel, got shape {shape}")
-    if arr.shape[0] == 0:
+    if arr.size == 0:
         raise ShapeError(f"{name} is empty (shape {shape})")
     dt = image.dtype
     if dt in (np.uint8, np.uint16):
@@ -276,6 +293,27 @@ def _as_images(name: str, image: Any, white_level: float | None) -> tuple[np.nda
                              f"in [0, 1] (divide raw values by the white level)")
         return np.clip(out, 0.0, 1.0), shape
     raise DTypeError(f"{name} has dtype {dt}; expected uint8, uint16 (scaled by the white level) or float in [0, 1]")
+
+
+def check_pairs(image_f1: np.ndarray, image_f2: np.ndarray,
+                confidence: np.ndarray) -> tuple[np.ndarray, tuple[str | None, ...]]:
+    """Zero the confidence of the pairs that are no DFD pairs (:func:`tdfd.pair_check.pair_problem`).
+
+    Args:
+        image_f1, image_f2: float32 ``(N, 1, H, W)`` in [0, 1] (as :meth:`DepthRuntime.prepare` returns).
+        confidence: ``(N, 1, h, w)`` model confidence.
+
+    Returns:
+        The confidence (a copy where a pair has a problem) and the ``N`` problems (``None`` for a good pair).
+    """
+    problems = tuple(pair_problem(image_f1[i], image_f2[i]) for i in range(image_f1.shape[0]))
+    if any(problems):
+        confidence = np.array(confidence, dtype=np.float32, copy=True)
+        for i, p in enumerate(problems):
+            if p:
+                confidence[i] = 0.0
+                logger.warning("pair %d is no DFD pair (%s): confidence set to 0", i, p)
+    return confidence, problems
 
 
 #: ONNX Runtime graph optimisation levels by name.
@@ -406,8 +444,18 @@ class DepthRuntime:
         return np.ascontiguousarray(a), np.ascontiguousarray(b), shape
 
     def run(self, image_f1: np.ndarray, image_f2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The bare session call on float32 ``(N, 1, H, W)`` arrays (no validation)."""
-        return tuple(self.session.run(list(OUTPUT_NAMES), {INPUT_NAMES[0]: image_f1, INPUT_NAMES[1]: image_f2}))  # type: ignore[return-value]
+        """The bare session call on float32 ``(N, 1, H, W)`` arrays (no validation, no pair check).
+
+        Raises:
+            ModelError: onnxruntime failed (the message names the model and the first line of
+                onnxruntime's own).
+        """
+        try:
+            out = self.session.run(list(OUTPUT_NAMES), {INPUT_NAMES[0]: image_f1, INPUT_NAMES[1]: image_f2})
+        except Exception as exc:  # onnxruntime raises its own exception types (Fail, InvalidArgument, ...)
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else repr(exc)
+            raise ModelError(f"onnxruntime failed running {self.path.name}: {first}") from exc
+        return tuple(out)  # type: ignore[return-value]
 
     def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray, white_level: float | None = None,
                  full_resolution: bool = False) -> DepthResult:
@@ -424,11 +472,17 @@ class DepthRuntime:
         Returns:
             A :class:`DepthResult` in the input's layout.
 
+        A pair that is no DFD pair (identical frames, a black, much darker or saturated frame:
+        :func:`tdfd.pair_check.pair_problem`) gets confidence 0 everywhere and its reason in
+        :attr:`DepthResult.problems`.
+
         Raises:
             DTypeError, ShapeError, NonFiniteError, RangeError: see :meth:`prepare`.
+            ModelError: onnxruntime failed.
         """
         a, b, shape = self.prepare(image_f1, image_f2, white_level)
         depth, conf, depth_a = self.run(a, b)
+        conf, problems = check_pairs(a, b, conf)
         H, W = a.shape[-2:]
         lead = {2: 0, 3: 1, 4: 2}[len(shape)]  # leading axes to keep: (H, W) -> none, (1, H, W) -> one
 
@@ -437,7 +491,7 @@ class DepthRuntime:
             return x[0, 0] if lead == 0 else (x[0] if lead == 1 else x)
 
         res = DepthResult(depth=fmt(depth), confidence=fmt(conf), depth_analytic=fmt(depth_a),
-                          image_size=(int(H), int(W)), tile=self.tile, stride=self.stride)
+                          image_size=(int(H), int(W)), tile=self.tile, stride=self.stride, problems=problems)
         return res.at_full_resolution() if full_resolution else res
 
     def in_focus_power_dpt(self, depth_m: float | np.ndarray) -> float | np.ndarray:

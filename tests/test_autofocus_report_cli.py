@@ -134,8 +134,7 @@ def test_onnx_estimator(tmp_path):
 def test_shipped_model_if_present():
     from tdfd.autofocus.estimators import OnnxEstimator, default_model_path
 
-    if not default_model_path().is_file():
-        pytest.skip("models/reference.onnx not shipped yet")
+    assert default_model_path().is_file(), f"the shipped model {default_model_path()} is missing"
     from tdfd.autofocus.bench import SimBench
 
     with SimBench(estimator=OnnxEstimator(), readout_hw=(192, 256), compute_s=0.005, texture_families=("fractal",)) as b:

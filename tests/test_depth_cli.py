@@ -11,7 +11,6 @@ import cv2
 import numpy as np
 import pytest
 
-from export.testing import session_onnx_model
 from tdfd.cli import main
 from tdfd.depth_cli import _nice_ticks, colorize_depth, read_frame
 
@@ -19,8 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def model_path(tmp_path_factory):
-    return session_onnx_model(tmp_path_factory)[0]
+def model_path(exported_onnx):
+    return exported_onnx[0]
 
 
 @pytest.fixture(scope="module")
@@ -150,3 +149,63 @@ def test_colorize_and_ticks():
     assert pic.dtype == np.uint8 and pic.shape[1] >= 480 and pic.shape[0] == 64 * 6 + 60
     assert _nice_ticks(0.3, 1.0) == [0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]
     assert _nice_ticks(0.2, 3.0)[0] == 0.5
+
+
+# ------------------------------------------------------------------ against the truth (shipped model)
+def _write_pair(tmp_path, f1, f2, name):
+    a, b = tmp_path / f"{name}_f1.png", tmp_path / f"{name}_f2.png"
+    assert cv2.imwrite(str(a), f1) and cv2.imwrite(str(b), f2)
+    return a, b
+
+
+def test_depth_of_rendered_planes_matches_the_truth(plane_pairs, shipped_onnx, tmp_path, capsys):
+    """12-bit frames in 16-bit PNGs: the printed centre depth and the written map are the plane's."""
+    for k, (f1, f2, truth) in enumerate(plane_pairs):
+        a, b = _write_pair(tmp_path, f1, f2, f"plane{k}")
+        out = tmp_path / f"plane{k}.npy"
+        rc, stdout, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "-o", out)
+        assert rc == 0, err
+        line = next(s for s in stdout.splitlines() if s.startswith("centre depth:"))
+        centre = float(line.split()[2])
+        assert abs(centre - truth) / truth < 0.05, (truth, line)
+        assert abs(float(np.median(np.load(out))) - truth) / truth < 0.05
+        power = float(line.split("in-focus ECVFL power")[1].split()[0])
+        assert power == pytest.approx(1.0 / centre, abs=2e-3)  # reference camera: P = 1/d
+
+
+def test_identical_and_black_frames_are_reported(plane_pairs, shipped_onnx, tmp_path, capsys):
+    f1, _, _ = plane_pairs[0]
+    a, _ = _write_pair(tmp_path, f1, f1, "same")
+    rc, stdout, err = _run(capsys, a, a, "--model", shipped_onnx, "--white-level", "4095")
+    assert rc == 0, err
+    assert "no DFD pair: frames are identical: the lens did not move" in stdout
+    assert "UNRELIABLE" in stdout and "valid: 0.0%" in stdout
+    black = tmp_path / "black.png"
+    cv2.imwrite(str(black), np.zeros_like(f1))
+    rc, stdout, err = _run(capsys, a, black, "--model", shipped_onnx, "--white-level", "4095")
+    assert rc == 0 and "no DFD pair: second frame is black" in stdout, stdout
+
+
+def test_unwritable_output_is_one_line(plane_pairs, shipped_onnx, tmp_path, capsys):
+    f1, f2, _ = plane_pairs[0]
+    a, b = _write_pair(tmp_path, f1, f2, "w")
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    rc, stdout, err = _run(capsys, a, b, "--model", shipped_onnx, "-o", blocker / "sub" / "d.npy")
+    _one_line_error(rc, err, "cannot write")
+    assert stdout == ""  # checked before any work
+    # the folder exists and passes the check, but the write itself fails (procfs takes no new files, even from root)
+    rc, stdout, err = _run(capsys, a, b, "--model", shipped_onnx, "-o", "/proc/tdfd_depth.npy")
+    _one_line_error(rc, err, "cannot write /proc/tdfd_depth.npy")
+    assert "centre depth:" in stdout
+    folder = tmp_path / "x.npy"
+    folder.mkdir()
+    _one_line_error(*_run(capsys, a, b, "--model", shipped_onnx, "-o", folder)[::2], "it is a folder")
+    if os.geteuid() != 0:  # root writes anywhere
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        ro.chmod(0o500)
+        try:
+            _one_line_error(*_run(capsys, a, b, "--model", shipped_onnx, "-o", ro / "d.png")[::2], "not writable")
+        finally:
+            ro.chmod(0o700)

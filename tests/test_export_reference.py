@@ -1,8 +1,8 @@
 """The shipped model: ``models/reference.onnx`` passes the checker and the contract, matches
 ``models/reference.safetensors`` in torch, and is what the runtime finds by default.
 
-Active as soon as the trained weights are shipped: from then on the ONNX file must exist
-too (export it with ``python -m export --weights models/reference.safetensors --out
+Both files are shipped and these tests fail (never skip) when either is missing (export
+the ONNX file with ``python -m export --weights models/reference.safetensors --out
 models/reference.onnx``). When the library's analytic layer or model code changes, the
 parity test fails until the file is exported again.
 """
@@ -20,15 +20,11 @@ ROOT = Path(__file__).resolve().parents[1]
 ONNX = ROOT / "models" / "reference.onnx"
 WEIGHTS = ROOT / "models" / "reference.safetensors"
 
-pytestmark = pytest.mark.skipif(not WEIGHTS.is_file() and not ONNX.is_file(),
-                                reason="models/reference.* not shipped yet (training has not delivered weights)")
-
-
 @pytest.fixture(scope="module")
 def model():
     from tdfd.model import DFDModel
 
-    assert WEIGHTS.is_file(), f"{ONNX} is shipped without the weights it was exported from ({WEIGHTS})"
+    assert WEIGHTS.is_file(), f"the shipped weights {WEIGHTS} (that {ONNX} is exported from) are missing"
     return DFDModel.load(WEIGHTS).eval()
 
 

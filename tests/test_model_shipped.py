@@ -9,18 +9,19 @@ from pathlib import Path
 import pytest
 import torch
 
+import data_synth
 from tdfd import Camera
 from tdfd.model import DFDModel
+from training.config import TEXTURED_FAMILIES
 
 ROOT = Path(__file__).resolve().parents[1]
 STEM = ROOT / "models" / "reference"
 
-pytestmark = pytest.mark.skipif(not (STEM.with_suffix(".safetensors").is_file() and STEM.with_suffix(".json").is_file()),
-                                reason="models/reference.* not present")
-
 
 @pytest.fixture(scope="module")
 def model():
+    for suffix in (".safetensors", ".json"):
+        assert STEM.with_suffix(suffix).is_file(), f"the shipped model {STEM.with_suffix(suffix)} is missing"
     return DFDModel.load(STEM)
 
 
@@ -35,9 +36,6 @@ def test_files_small_and_described(model):
 
 
 def test_beats_analytic_on_held_out_planes(model):
-    data_synth = pytest.importorskip("data_synth")
-    from training.config import TEXTURED_FAMILIES
-
     ds = data_synth.DefocusPairDataset(size=192, seed=987_654, layouts={"plane": 1.0}, families=TEXTURED_FAMILIES,
                                        illumination_prob=0.0)
     b = ds.batch(list(range(16)))
@@ -52,7 +50,6 @@ def test_beats_analytic_on_held_out_planes(model):
 
 
 def test_textureless_gets_low_confidence(model):
-    data_synth = pytest.importorskip("data_synth")
     ds = data_synth.DefocusPairDataset(size=128, seed=55, layouts={"plane": 1.0}, families=["flat"], illumination_prob=0.0)
     b = ds.batch(list(range(6)))
     with torch.no_grad():

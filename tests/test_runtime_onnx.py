@@ -14,7 +14,6 @@ import pytest
 from onnx import TensorProto, helper
 
 from export import realistic_pairs
-from export.testing import session_onnx_model
 from tdfd import Camera
 from tdfd.errors import DTypeError, ModelError, NonFiniteError, RangeError, ShapeError
 from tdfd.runtime import DepthResult, DepthRuntime, default_model_path, in_focus_power_dpt, resample_to_image
@@ -23,8 +22,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def exported(tmp_path_factory):
-    return session_onnx_model(tmp_path_factory)
+def exported(exported_onnx):
+    return exported_onnx
 
 
 @pytest.fixture(scope="module")
@@ -234,12 +233,13 @@ def test_default_model_path(monkeypatch, tmp_path, exported):
         default_model_path()
     monkeypatch.delenv("TDFD_MODEL")
     shipped = ROOT / "models" / "reference.onnx"
-    if shipped.is_file():
-        assert default_model_path() == shipped
-    else:
-        monkeypatch.chdir(tmp_path)
-        with pytest.raises(ModelError, match="no model found"):
-            default_model_path()
+    assert default_model_path() == shipped  # through the package's tdfd/assets link
+    monkeypatch.setattr("tdfd.runtime.SHIPPED_MODEL", tmp_path / "not_installed.onnx")
+    monkeypatch.chdir(ROOT)
+    assert default_model_path() == shipped  # models/ of the working directory
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ModelError, match=r"no model found: name one with --model PATH .* or \$TDFD_MODEL"):
+        default_model_path()
 
 
 def test_runtime_imports_no_torch(exported):

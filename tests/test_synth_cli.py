@@ -1,6 +1,7 @@
 """``python -m data_synth``: shards, manifest, contact sheet, 16-bit PNG pairs, reproducibility."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -13,19 +14,14 @@ import torch
 import tdfd
 from data_synth import DefocusPairDataset
 from data_synth.cli import main
-from data_synth.writer import ShardDataset, load_shard, sha256_file
+from data_synth.writer import ShardDataset, ShardIntegrityError, load_shard, sha256_file
 from tdfd import Camera
+from tdfd.errors import InputError
 
 ARGS = ["--count", "5", "--size", "64", "--tile", "32", "--stride", "16", "--shard-size", "2", "-q"]
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Small tensors: one intra-op thread is faster, and immune to other load on the cores."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
 def _run(out: Path, *extra: str) -> dict:
@@ -97,3 +93,70 @@ def test_python_dash_m_entry_point(tmp_path):
     r = subprocess.run([sys.executable, "-m", "data_synth", "--help"], capture_output=True, text=True,
                        cwd=Path(__file__).resolve().parents[1])
     assert r.returncode == 0 and "--png16" in r.stdout and "--shard-size" in r.stdout
+
+
+# ----------------------------------------------------------------- crash safety on disk
+def test_rerun_killed_midway_leaves_no_stale_manifest(tmp_path):
+    """A second run into the same folder, SIGKILLed after it rewrote a shard: the old manifest
+    must not describe the new shards (before the fix it did, and ShardDataset loaded them)."""
+    import signal
+    import time
+
+    out = tmp_path / "d"
+    old = _run(out, "--seed", "1", "--contact-sheet", "0")
+    first = out / old["shards"][0]["file"]
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    proc = subprocess.Popen([sys.executable, "-m", "data_synth", "--out", str(out), *ARGS, "--seed", "2",
+                             "--count", "400", "--contact-sheet", "0", "--threads", "1"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 120
+        while sha256_file(first) == old["shards"][0]["sha256"]:
+            assert proc.poll() is None, proc.stderr.read().decode()
+            assert time.monotonic() < deadline, "the second run never rewrote the first shard"
+            time.sleep(0.01)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+        proc.stderr.close()
+    assert proc.returncode == -signal.SIGKILL
+    assert not (out / "manifest.json").exists()
+    with pytest.raises(InputError, match="no manifest.json.*interrupted"):
+        ShardDataset(out)
+    # the next complete run works, and leaves no temporary files behind
+    man = _run(out, "--seed", "2", "--contact-sheet", "0")
+    assert not list(out.glob(".*tdfd-tmp"))
+    assert len(ShardDataset(out)) == man["count"] == 5
+
+
+def test_shard_dataset_checks_the_sha256(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    man = _run(a, "--seed", "1", "--contact-sheet", "0")
+    _run(b, "--seed", "2", "--contact-sheet", "0")
+    name = man["shards"][1]["file"]
+    (a / name).write_bytes((b / name).read_bytes())  # a valid shard, but not the one the manifest lists
+    ds = ShardDataset(a)
+    assert ds[0]["params"]["index"] == 0  # shard 0 is intact
+    with pytest.raises(ShardIntegrityError, match=f"shard {name} of .* does not match its manifest"):
+        ds[2]
+    assert torch.equal(ShardDataset(a, verify=False)[2]["image_f1"], ShardDataset(b)[2]["image_f1"])
+    (a / name).unlink()
+    with pytest.raises(ShardIntegrityError, match=f"shard {name} of .* is missing"):
+        ShardDataset(a)[3]
+    torn = man["shards"][0]["file"]
+    data = (a / torn).read_bytes()
+    (a / torn).write_bytes(data[: len(data) // 2])
+    with pytest.raises(ShardIntegrityError, match=torn):
+        ShardDataset(a)[0]
+
+
+def test_orphaned_temporary_files_are_removed_on_the_next_run(tmp_path):
+    out = tmp_path / "o"
+    out.mkdir()
+    dead = out / ".shard_00001.safetensors.999999999.tdfd-tmp"  # no such pid
+    dead.write_bytes(b"half a shard")
+    live = out / f".shard_00002.safetensors.{os.getppid()}.tdfd-tmp"  # a running process: not ours to delete
+    live.write_bytes(b"being written")
+    (out / "unrelated.tmp").write_bytes(b"keep")
+    _run(out, "--contact-sheet", "0")
+    assert not dead.exists() and live.exists() and (out / "unrelated.tmp").exists()

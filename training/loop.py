@@ -21,6 +21,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from tdfd.atomic_io import atomic_writer, remove_orphans
 from tdfd.model import DFDModel
 
 from .config import ConfigError, TrainConfig, config_to_dict
@@ -93,8 +94,9 @@ def _lr_lambda(cfg: TrainConfig):
 # ----------------------------------------------------------------------------- checkpoints
 def save_checkpoint(path: Path, model: DFDModel, opt: torch.optim.Optimizer, sched: Any, step: int,
                     cfg: TrainConfig, extra: dict[str, Any] | None = None) -> None:
-    """Write model, optimiser, scheduler, RNG states and step atomically (``torch.save``;
-    read back with ``weights_only=True``)."""
+    """Write model, optimiser, scheduler, RNG states and step atomically (``torch.save`` into
+    :func:`tdfd.atomic_io.atomic_writer`: temporary file, fsync, ``os.replace``; read back with
+    ``weights_only=True``)."""
     state = {
         "step": int(step),
         "model": model.state_dict(),
@@ -105,9 +107,9 @@ def save_checkpoint(path: Path, model: DFDModel, opt: torch.optim.Optimizer, sch
         "config_json": json.dumps(config_to_dict(cfg), sort_keys=True),
         "extra_json": json.dumps(extra or {}, sort_keys=True),
     }
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+    remove_orphans(path.parent)  # temporary files of an interrupted save
+    with atomic_writer(path) as f:
+        torch.save(state, f)
 
 
 def load_checkpoint(path: Path, model: DFDModel, opt: torch.optim.Optimizer, sched: Any) -> dict[str, Any]:

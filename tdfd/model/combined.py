@@ -44,6 +44,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .._tracing import is_exporting
+from ..atomic_io import atomic_write_bytes, atomic_write_text, remove_orphans
 from ..camera import Camera
 from ..dfd.fourier_ratio import DFDResult, FourierRatioDFD, validate_pair
 from ..errors import InputError, ModelError
@@ -468,6 +469,9 @@ class DFDModel(nn.Module):
     def save(self, path: str | Path, extra: dict[str, Any] | None = None) -> tuple[Path, Path]:
         """Write ``<stem>.safetensors`` (weights) and ``<stem>.json`` (config); no pickle.
 
+        Each file is written atomically (:mod:`tdfd.atomic_io`: temporary file, fsync,
+        ``os.replace``); temporary files of an interrupted save are removed first.
+
         Args:
             path: ``<stem>``, ``<stem>.safetensors`` or ``<stem>.json``.
             extra: additional JSON-serialisable metadata stored under ``"extra"``.
@@ -475,17 +479,17 @@ class DFDModel(nn.Module):
         Returns:
             The two paths written.
         """
-        from safetensors.torch import save_file
+        from safetensors.torch import save
 
         weights, meta = self._paths(path)
-        weights.parent.mkdir(parents=True, exist_ok=True)
+        remove_orphans(weights.parent)  # temporary files of an interrupted save
         state = {k: v.detach().to("cpu").contiguous() for k, v in self.state_dict().items()}
-        save_file(state, str(weights), metadata={"format": MODEL_FORMAT})
         cfg = self.config()
         cfg["analytic_fingerprint"] = self.analytic_fingerprint()
         if extra:
             cfg["extra"] = extra
-        meta.write_text(json.dumps(cfg, indent=2, sort_keys=True) + "\n")
+        atomic_write_bytes(weights, save(state, metadata={"format": MODEL_FORMAT}))
+        atomic_write_text(meta, json.dumps(cfg, indent=2, sort_keys=True) + "\n")
         return weights, meta
 
     @classmethod
