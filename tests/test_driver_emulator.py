@@ -420,6 +420,8 @@ def test_emulator_serial_faults() -> None:
     port.faults = Faults(drop=1.0)
     with pytest.raises(LensTimeoutError):
         lens.get_temperature_c()
+    port.faults = Faults()
+    assert lens.get_temperature_c() == 25.0  # resynchronised (a fence command first)
     port.faults = Faults(disconnect_after=1)
     assert lens.get_temperature_c() == 25.0
     with pytest.raises(LensConnectionError):

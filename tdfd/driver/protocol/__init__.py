@@ -6,7 +6,9 @@ One idea per module, all re-exported here:
 * :mod:`.units`: 16-bit fields and unit conversions (mA, dpt, °C).
 * :mod:`.commands`: one encoder per command.
 * :mod:`.replies`: reply types (frames, error frames, modes, status) and their parsers.
-* :mod:`.decoder`: decoding one frame, and the resynchronising stream decoder.
+* :mod:`.decoder`: decoding one frame, and the resynchronising stream decoder for input
+  of unknown origin.
+* :mod:`.reader`: finding the reply to one command by its expected length.
 
 Pure functions and a feed-based decoder; nothing here touches a port. The facts this
 module encodes (see ``shared/optotune-lens-driver-4.md``):
@@ -81,6 +83,7 @@ from .framing import (
     reply_prefix_for,
     with_crc,
 )
+from .reader import ReplyReader
 from .replies import (
     encode_error_reply,
     encode_reply,
@@ -171,6 +174,7 @@ __all__ = [
     "encode_error_reply",
     "decode_frame",
     "FrameDecoder",
+    "ReplyReader",
     "parse_firmware_version",
     "parse_focal_power_limits",
     "parse_status",
