@@ -9,16 +9,20 @@ from dataclasses import dataclass, field, fields
 from ...errors import InputError
 from .. import protocol as p
 
-__all__ = ["Faults"]
+__all__ = ["Faults", "KINDS"]
+
+#: the probabilistic fault kinds (fields of :class:`Faults`).
+KINDS = ("bad_crc", "drop", "late", "garbage", "corrupt")
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class Faults:
-    """Seeded fault injection on the emulator's replies (and the port itself).
+    """Seeded fault injection on the emulator's replies, on the commands it receives, and on the port.
 
-    Probabilities are per reply and independent; a probability of 1 always fires. Set
+    Probabilities are per reply (``corrupt``: per command write) and independent; a
+    probability of 1 always fires. Set
     ``limit`` to stop after that many injected faults (e.g. ``Faults(drop=1, limit=1)``
     drops exactly the next reply). Replace or mutate the server's faults at run time.
 
@@ -27,6 +31,9 @@ class Faults:
         drop: probability of not sending a reply.
         late: probability of delaying a reply (and those queued after it) by ``late_s``.
         garbage: probability of sending 1…``garbage_max_bytes`` random bytes before a reply.
+        corrupt: probability of corrupting one byte of a command on its way to the device
+            (the device answers ``E 1`` for a bad CRC, ``E 3`` for a mangled prefix, and a
+            set command that has no reply of its own is not carried out).
         late_s: delay of a late reply, seconds.
         garbage_max_bytes: most garbage bytes at once.
         disconnect_after: close the pty after this many further commands (0: at the
@@ -41,6 +48,7 @@ class Faults:
     drop: float = 0.0
     late: float = 0.0
     garbage: float = 0.0
+    corrupt: float = 0.0
     late_s: float = 0.3
     garbage_max_bytes: int = 8
     disconnect_after: int | None = None
@@ -50,7 +58,7 @@ class Faults:
     injected: int = field(default=0, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        for name in ("bad_crc", "drop", "late", "garbage"):
+        for name in KINDS:
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise InputError(f"fault probability {name} must be in [0, 1], got {value}")
@@ -64,7 +72,7 @@ class Faults:
 
         Examples:
             >>> Faults.parse(["drop=0.5", "late_s=0.1", "disconnect_after=3"])
-            Faults(bad_crc=0.0, drop=0.5, late=0.0, garbage=0.0, late_s=0.1, garbage_max_bytes=8, disconnect_after=3, limit=None, seed=0)
+            Faults(bad_crc=0.0, drop=0.5, late=0.0, garbage=0.0, corrupt=0.0, late_s=0.1, garbage_max_bytes=8, disconnect_after=3, limit=None, seed=0)
         """
         kinds = {f.name: f.type for f in fields(cls) if f.init}
         values: dict[str, object] = {"seed": seed}
@@ -76,10 +84,11 @@ class Faults:
             kind = str(kinds[name])
             if value.strip().lower() in ("none", ""):
                 values[name] = None
-            elif "int" in kind:
-                values[name] = int(value)
             else:
-                values[name] = float(value)
+                try:
+                    values[name] = int(value) if "int" in kind else float(value)
+                except ValueError:
+                    raise InputError(f"bad fault {spec!r}: {value!r} is not a number") from None
         return cls(**values)  # type: ignore[arg-type]
 
     def _roll(self, probability: float) -> bool:
@@ -116,3 +125,13 @@ class Faults:
             out = junk + out
             log.info("fault: %d garbage byte(s) before the reply", n)
         return out, delay
+
+    def corrupt_command(self, data: bytes) -> bytes:
+        """Decide the fate of bytes written to the device: maybe one byte XOR-ed with a random non-zero value."""
+        if not data or not self._roll(self.corrupt):
+            return bytes(data)
+        bad = bytearray(data)
+        index = self.rng.randrange(len(bad))
+        bad[index] ^= self.rng.randint(1, 255)
+        log.info("fault: command %s corrupted to %s", bytes(data).hex(" "), bytes(bad).hex(" "))
+        return bytes(bad)

@@ -8,6 +8,7 @@ slave device path, usable with ``serial.Serial(path)`` or
 
 from __future__ import annotations
 
+import inspect
 import logging
 import os
 import select
@@ -16,7 +17,7 @@ import threading
 import time
 from collections import deque
 
-from ...errors import DriverError
+from ...errors import DriverError, InputError
 from .device import Emulator
 from .faults import Faults
 
@@ -55,7 +56,12 @@ class EmulatorServer:
         **device_kwargs: object,
     ) -> None:
         if device is not None and device_kwargs:
-            raise TypeError("pass either device or Emulator keyword arguments, not both")
+            raise InputError(
+                f"EmulatorServer takes either device or Emulator keyword arguments, not both (got {sorted(device_kwargs)})"
+            )
+        unknown = sorted(set(device_kwargs) - set(inspect.signature(Emulator).parameters))
+        if unknown:
+            raise InputError(f"EmulatorServer: unknown Emulator keyword argument(s) {unknown}")
         self.device = device if device is not None else Emulator(**device_kwargs)  # type: ignore[arg-type]
         self._faults = faults if faults is not None else Faults()
         self.partial_timeout_s = float(partial_timeout_s)
@@ -247,6 +253,8 @@ class EmulatorServer:
                     if data:
                         last_rx = time.monotonic()
                         before = self.device.command_count
+                        with self._lock:
+                            data = self._faults.corrupt_command(data)
                         replies = self.device.feed(data)
                         now = time.monotonic()
                         with self._lock:

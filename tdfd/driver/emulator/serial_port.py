@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
+from typing import Callable
 
 from .device import Emulator
 from .faults import Faults
@@ -18,13 +19,22 @@ class EmulatorSerial:
     """An in-process, pyserial-like port wired to an :class:`Emulator` (no pty, no thread).
 
     Replies become readable as soon as the command is written (late ones after
-    ``late_s`` of wall-clock time); :class:`Faults` apply as on the pty. After an injected
-    disconnect every call raises ``serial.SerialException`` like a vanished port.
+    ``late_s``); :class:`Faults` apply as on the pty. A read that cannot be completed
+    waits out its timeout, as pyserial's does. After an injected disconnect every call
+    raises ``serial.SerialException`` like a vanished port.
+
+    Time is read from ``clock`` and waited with ``sleep``: pass a simulated clock's pair
+    (and the same clock to the :class:`Emulator`) to run timeouts and late replies in
+    simulated time, e.g. for long fault-injection runs.
 
     Args:
         device: the model (default: a new :class:`Emulator`).
         faults: fault injection (default: none).
         timeout: read timeout, seconds (as pyserial's ``timeout``).
+        clock: time source, seconds (default :func:`time.monotonic`).
+        sleep: waits a number of seconds on ``clock`` (default :func:`time.sleep`).
+        partial_timeout_s: an incomplete command older than this is discarded when the
+            next bytes are written (as the pty server does after an idle gap), seconds.
 
     Example:
         >>> from tdfd.driver import OptotuneLens
@@ -33,9 +43,22 @@ class EmulatorSerial:
         50.0
     """
 
-    def __init__(self, device: Emulator | None = None, *, faults: Faults | None = None, timeout: float | None = 0.5) -> None:
-        self.device = device if device is not None else Emulator()
+    def __init__(
+        self,
+        device: Emulator | None = None,
+        *,
+        faults: Faults | None = None,
+        timeout: float | None = 0.5,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+        partial_timeout_s: float = 0.25,
+    ) -> None:
+        self.device = device if device is not None else Emulator(clock=clock)
         self.timeout = timeout
+        self.clock = clock
+        self.sleep = sleep
+        self.partial_timeout_s = float(partial_timeout_s)
+        self._last_write = clock()
         self.port = "emulator://"
         self.is_open = True
         self._out: deque[tuple[float, bytes]] = deque()
@@ -69,7 +92,7 @@ class EmulatorSerial:
             raise serial.PortNotOpenError()
 
     def _collect(self) -> None:
-        now = time.monotonic()
+        now = self.clock()
         while self._out and self._out[0][0] <= now:
             self._rx += self._out.popleft()[1]
 
@@ -81,12 +104,15 @@ class EmulatorSerial:
         return len(self._rx)
 
     def write(self, data: bytes) -> int:
-        """Feed bytes to the device; queue its (faulted) replies."""
+        """Feed bytes (maybe corrupted by :attr:`faults`) to the device; queue its (faulted) replies."""
         self._check()
+        now = self.clock()
+        if self.device.pending and now - self._last_write >= self.partial_timeout_s:
+            self.device.discard_partial()
+        self._last_write = now
         before = self.device.command_count
-        replies = self.device.feed(bytes(data))
+        replies = self.device.feed(self._faults.corrupt_command(bytes(data)))
         self._commands += self.device.command_count - before
-        now = time.monotonic()
         for reply in replies:
             sent, delay = self._faults.apply(reply)
             if sent is not None:
@@ -95,15 +121,15 @@ class EmulatorSerial:
         return len(data)
 
     def read(self, size: int = 1) -> bytes:
-        """Up to ``size`` bytes, waiting at most :attr:`timeout` for late ones."""
+        """Up to ``size`` bytes, waiting at most :attr:`timeout` (the whole timeout if fewer come)."""
         self._check()
-        deadline = time.monotonic() + (self.timeout if self.timeout is not None else 3600.0)
+        deadline = self.clock() + (self.timeout if self.timeout is not None else 3600.0)
         self._collect()
-        while len(self._rx) < size and self._out:
-            wait = min(self._out[0][0], deadline) - time.monotonic()
-            if wait <= 0 and time.monotonic() >= deadline:
+        while len(self._rx) < size:
+            now = self.clock()
+            if now >= deadline:
                 break
-            time.sleep(max(wait, 0.0))
+            self.sleep(max(0.0, (min(self._out[0][0], deadline) if self._out else deadline) - now))
             self._collect()
         out = bytes(self._rx[:size])
         del self._rx[:size]
