@@ -24,6 +24,7 @@ __all__ = [
     "LensConnectionError",
     "LensRangeError",
     "LensModeError",
+    "LensStateError",
     "ForbiddenCommandError",
     "UnsupportedFirmwareError",
 ]
@@ -111,6 +112,10 @@ class LensModeError(DriverError):
     For example setting a focal power while the driver is in current mode (``PwDA`` acts
     only in focal-power mode), or setting a current while it is in focal-power mode.
     """
+
+
+class LensStateError(DriverError):
+    """The device does not hold what was set: a set-point that still reads back otherwise after re-sending."""
 
 
 class ForbiddenCommandError(DriverError, ValueError):

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from tests.driver_frames import cmd, i16, ref_crc, rep
 from tdfd.driver import Calibration, Emulator, EmulatorSerial, EmulatorServer, Faults, Mode, OptotuneLens, StatusFlags
 from tdfd.driver import protocol as p
-from tdfd.errors import LensConnectionError, LensTimeoutError
+from tdfd.errors import InputError, LensConnectionError, LensTimeoutError
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -336,8 +336,10 @@ def test_server_with_own_device_and_clock() -> None:
         lens.get_current_ma()  # the Aw has been processed when its successor is answered
         assert device.focal_power_at(0.0) == pytest.approx(-1.5)
         assert device.focal_power_at(1.0) == pytest.approx(device.target_focal_power_dpt)
-    with pytest.raises(TypeError):
+    with pytest.raises(InputError, match="not both"):  # a typed error (issue 21), was a bare TypeError
         EmulatorServer(device, firmware_type="B")
+    with pytest.raises(InputError, match="firmwaretype"):
+        EmulatorServer(firmwaretype="B")
 
 
 # --------------------------------------------------------------------------- the CLI
@@ -420,7 +422,43 @@ def test_emulator_serial_faults() -> None:
     port.faults = Faults(drop=1.0)
     with pytest.raises(LensTimeoutError):
         lens.get_temperature_c()
+    port.faults = Faults()
+    assert lens.get_temperature_c() == 25.0  # resynchronised (a fence command first)
     port.faults = Faults(disconnect_after=1)
     assert lens.get_temperature_c() == 25.0
     with pytest.raises(LensConnectionError):
         lens.get_temperature_c()
+
+
+# --------------------------------------------------------------------------- corrupted commands
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_corrupt_fault_on_a_query_is_retried(seed: int) -> None:
+    port = EmulatorSerial(timeout=0.05)
+    lens = OptotuneLens(port, timeout_s=0.05).connect()
+    port.faults = Faults(corrupt=1.0, limit=1, seed=seed)
+    assert lens.get_temperature_c() == 25.0
+    assert port.faults.injected == 1
+
+
+def test_corrupt_fault_on_a_set_command_over_the_pty() -> None:
+    with EmulatorServer() as srv, OptotuneLens.open(srv.port, timeout_s=0.1, verify=True) as lens:
+        srv.faults = Faults(corrupt=1.0, limit=1, seed=2)
+        lens.set_current_ma(100.0)  # verified: the corrupted Aw is noticed and sent again
+        assert srv.faults.injected == 1
+        assert srv.device.current_ma == pytest.approx(100.0, abs=292.84 / 4095)
+
+
+def test_emulator_serial_on_a_simulated_clock() -> None:
+    clock = FakeClock(0.0)
+
+    def sleep(dt: float) -> None:
+        clock.t += dt
+
+    port = EmulatorSerial(Emulator(clock=clock), timeout=0.5, clock=clock, sleep=sleep)
+    lens = OptotuneLens(port, timeout_s=0.5).connect()
+    port.faults = Faults(drop=1.0, limit=1)
+    t0 = clock.t
+    assert lens.get_temperature_c() == 25.0
+    assert clock.t - t0 == pytest.approx(0.5)  # one read timeout, in simulated time only

@@ -96,6 +96,9 @@ def scripted(script: list, **kwargs) -> tuple[OptotuneLens, ScriptedSerial]:  # 
     return lens, port
 
 
+#: after a query ends without its reply, the next exchange starts with a fence (H: firmware type)
+FENCE = (cmd(b"H"), rep(b"H", b"A"))
+
 FP_MODE_SCRIPT = [
     (cmd(b"PwTA" + i16(640) + i16(320)), rep(b"PT", bytes([0]) + i16(1500) + i16(0))),
     (cmd(b"MwCA"), rep(b"MCA", bytes([0]) + i16(1500) + i16(0))),  # type A: -5 … +2.5 dpt
@@ -235,7 +238,7 @@ def test_device_error_reply_not_retried() -> None:
 @pytest.mark.parametrize("error_reply", [rep(b"E", b"\x01"), b"N\r\n"])
 def test_crc_error_reply_is_retried(error_reply: bytes) -> None:
     get = cmd(b"Ar\x00\x00")
-    lens, port = scripted(connect_script() + [(get, error_reply), (get, rep(b"A", i16(7)))])
+    lens, port = scripted(connect_script() + [(get, error_reply), FENCE, (get, rep(b"A", i16(7)))])
     lens.connect()
     assert lens.get_current_ma() == pytest.approx(7 * 292.84 / 4095)
     port.assert_done()
@@ -243,7 +246,7 @@ def test_crc_error_reply_is_retried(error_reply: bytes) -> None:
 
 def test_persistent_crc_error_reply_raises_after_retries() -> None:
     get = cmd(b"TCA")
-    lens, port = scripted(connect_script() + [(get, b"N\r\n")] * 3)
+    lens, port = scripted(connect_script() + [(get, b"N\r\n"), FENCE, (get, b"N\r\n"), FENCE, (get, b"N\r\n")])
     lens.connect()
     with pytest.raises(DeviceErrorReply) as info:
         lens.get_temperature_c()
@@ -253,16 +256,16 @@ def test_persistent_crc_error_reply_raises_after_retries() -> None:
 
 def test_timeout_retries_are_bounded() -> None:
     get = cmd(b"TCA")
-    lens, port = scripted(connect_script() + [(get, b"")] * 3, retries=2)
+    lens, port = scripted(connect_script() + [(get, b""), FENCE, (get, b""), FENCE, (get, b"")], retries=2)
     lens.connect()
     with pytest.raises(LensTimeoutError):
         lens.get_temperature_c()
-    port.assert_done()  # exactly 1 + 2 attempts
+    port.assert_done()  # exactly 1 + 2 attempts, each after a fence
 
 
 def test_timeout_then_success() -> None:
     get = cmd(b"TCA")
-    lens, port = scripted(connect_script() + [(get, b"TC"), (get, rep(b"TCA", i16(400)))])
+    lens, port = scripted(connect_script() + [(get, b"TC"), FENCE, (get, rep(b"TCA", i16(400)))])
     lens.connect()
     assert lens.get_temperature_c() == 25.0
     port.assert_done()
@@ -542,7 +545,7 @@ def test_bare_n_error_style() -> None:
 
 def test_babbling_port_is_cut_off() -> None:
     get = cmd(b"TCA")
-    lens, port = scripted([(get, bytes(300))] * 2, retries=1)
+    lens, port = scripted([(get, bytes(300)), FENCE, (get, bytes(300))], retries=1)
     lens.firmware_type = "A"
     with pytest.raises(ProtocolError):
         lens.get_temperature_c()

@@ -355,3 +355,90 @@ def test_fuzz_any_chunking_of_valid_replies_decodes_exactly(replies: list[bytes]
         last = cut
     assert found == [p.decode_frame(r) for r in replies]
     assert decoder.discarded == 0
+
+
+# --------------------------------------------------------------------------- the reply reader (expected length)
+
+_INNER = [b"N\r\n", b"Ready\r\n", ref_reply(b"E", b"\x01")[:6]]
+
+
+def test_reply_reader_decodes_by_the_expected_length() -> None:
+    x = ref_reply(b"X", b"AN\r\nBCDE")  # a serial number holding a bare error reply
+    assert p.ReplyReader(b"X").feed(x) == [p.Frame(b"X", b"AN\r\nBCDE")]
+    ir = ref_reply(b"IR", b"Ready\r\n\x00")
+    assert p.ReplyReader(b"IR").feed(ir) == [p.Frame(b"IR", b"Ready\r\n\x00")]
+    # the stream decoder, fed as the bytes arrive, takes the inner frame: the reason the reader exists
+    decoder = p.FrameDecoder()
+    assert decoder.feed(x[:3]) + decoder.feed(x[3:6]) == [p.ErrorFrame(1, bare=True)]
+
+
+def test_reply_reader_byte_by_byte_and_needed() -> None:
+    x = ref_reply(b"X", b"N\r\nReady")
+    reader = p.ReplyReader(b"X")
+    assert reader.needed() == 3
+    found = []
+    for i, byte in enumerate(x):
+        found += reader.feed(bytes([byte]))
+        if i < len(x) - 1:
+            assert found == [] and reader.needed() == len(x) - i - 1
+    assert found == [p.Frame(b"X", b"N\r\nReady")]
+
+
+def test_reply_reader_consumes_other_frames_whole() -> None:
+    stale = ref_reply(b"IR", b"xN\r\nyyyy")  # a late reply to an earlier command, with an inner frame
+    error = ref_reply(b"E", b"\x03")
+    reply = ref_reply(b"A", bytes.fromhex("05 7A"))
+    reader = p.ReplyReader(b"A")
+    assert reader.feed(b"\x00\x13" + stale + error + reply) == [
+        p.Frame(b"IR", b"xN\r\nyyyy"),
+        p.ErrorFrame(3),
+        p.Frame(b"A", bytes.fromhex("05 7A")),
+    ]
+    assert reader.discarded == 2 and reader.pending == b""
+
+
+def test_reply_reader_bad_crc_of_the_expected_reply_is_consumed_whole() -> None:
+    bad = bytearray(ref_reply(b"X", b"N\r\nabcde"))
+    bad[-3] ^= 0xFF
+    reader = p.ReplyReader(b"X")
+    assert reader.feed(bytes(bad)) == []
+    assert [type(e) for e in reader.errors] == [ChecksumError]
+    assert reader.pending == b""
+
+
+def test_reply_reader_finish_finds_a_short_frame_behind_a_stray_prefix_byte() -> None:
+    reader = p.ReplyReader(b"X")
+    error = ref_reply(b"E", b"\x01")
+    assert reader.feed(b"X" + error) == []  # could still be a 13-byte X reply
+    assert reader.finish() == [p.ErrorFrame(1)]
+
+
+def test_reply_reader_refuses_unknown_prefixes() -> None:
+    with pytest.raises(ProtocolError):
+        p.ReplyReader(b"Q")
+
+
+@_fuzz
+@given(
+    st.sampled_from(sorted(k for k in p.REPLY_DATA_LENGTHS if k != b"E")),
+    st.data(),
+    st.lists(_ALL_REPLIES, max_size=3),
+    st.binary(max_size=12),
+)
+def test_fuzz_reply_reader_finds_the_expected_reply_whatever_its_payload(
+    prefix: bytes, data: st.DataObject, before: list[bytes], garbage: bytes
+) -> None:
+    n = p.REPLY_DATA_LENGTHS[prefix]
+    inner = data.draw(st.sampled_from(_INNER + [b""]))
+    payload = (data.draw(st.binary(max_size=n)) + inner)[:n].ljust(n, b"\0")
+    reply = ref_reply(prefix, payload)
+    before = [r for r in before if not r.startswith(prefix)]  # a same-prefix reply would be taken first
+    # garbage may not end in a (partial) frame start swallowing what follows
+    stream = garbage + b"\0" * 8 + b"".join(before) + reply
+    reader = p.ReplyReader(prefix)
+    found = []
+    chunk = data.draw(st.integers(1, 9))
+    for i in range(0, len(stream), chunk):
+        found += reader.feed(stream[i : i + chunk])
+    assert p.Frame(prefix, payload) in found
+    assert found[-1] == p.Frame(prefix, payload)

@@ -1,17 +1,21 @@
 """Driver for the Optotune Lens Driver 4 (electrically tunable lens), and its emulator.
 
-Layers, from the wire up:
+Layers, from the wire up (imports point down this list):
 
-* :mod:`tdfd.driver.protocol`: sans-I/O encoding, CRC-16/ARC and a resynchronising
-  frame decoder.
+* :mod:`tdfd.driver.protocol` (a package): sans-I/O protocol, one idea per module:
+  ``framing`` (CRC-16/ARC, command table, reply lengths), ``units`` (16-bit fields, mA,
+  dpt, °C), ``commands`` (one encoder per command), ``replies`` (reply types and parsers),
+  ``decoder`` (one frame; the resynchronising feed decoder).
 * :mod:`tdfd.driver.transport`: fixed-length, timed reads and writes over any
   pyserial-like object; drains stray input before each command.
 * :mod:`tdfd.driver.lens`: :class:`OptotuneLens`, the device API (mA, dpt, °C), with
   range checks, typed errors and bounded retries.
-* :mod:`tdfd.driver.emulator`: a byte-exact device model (:class:`Emulator`) with
-  first-order focal-power settling and an injectable clock, served on a pseudo-terminal
-  by :class:`EmulatorServer` (or wired in-process by :class:`EmulatorSerial`), with
-  fault injection (:class:`Faults`).
+* :mod:`tdfd.driver.emulator` (a package): a byte-exact device model (:class:`Emulator`,
+  ``device``) with first-order focal-power settling (``optics``) and an injectable
+  clock, served on a pseudo-terminal by :class:`EmulatorServer` (``pty_server``) or wired
+  in-process by :class:`EmulatorSerial` (``serial_port``), with fault injection
+  (:class:`Faults`, ``faults``).
+* :mod:`tdfd.driver.cli`: ``tdfd lens-emulator``.
 
 This package imports nothing from the depth-from-defocus side of tdfd.
 """

@@ -38,6 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="NAME=VALUE",
         help=(
             "inject faults, repeatable: bad_crc=P, drop=P, late=P, garbage=P (probabilities per reply), "
+            "corrupt=P (probability per command received), "
             "late_s=SECONDS, garbage_max_bytes=N, disconnect_after=COMMANDS, limit=N"
         ),
     )

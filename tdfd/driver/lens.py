@@ -7,14 +7,30 @@ Typical use::
     with OptotuneLens.open("/dev/ttyACM0") as lens:     # handshake: the current drops to 0
         lens.set_current_ma(50.0)                      # DC current mode
         limits = lens.set_focal_power_mode()           # PwTA (temperature limits), then MwCA
-        lens.set_focal_power_dpt(1.5)                  # range-checked against ``limits``
+        lens.set_focal_power_dpt(1.5, verify=True)     # range-checked, then read back (PrDA)
         print(lens.get_focal_power_dpt(), lens.get_temperature_c())
+
+The driver's view of the device is verified, not assumed:
+
+* :attr:`OptotuneLens.mode` is ``None`` (unknown) after a mode change (``MwDA``,
+  ``MwCA``, ``Start``) whose reply was lost, and the mode is read (``MMA``) before the
+  next set command relies on it.
+* Set commands have no reply. With ``verify=True`` (per call, or for every call with
+  ``OptotuneLens(..., verify=True)``) the set-point is read back (``Ar``/``PrDA``); a
+  command the device rejected or never got is sent again, and one that still does not
+  take raises :class:`~tdfd.errors.LensStateError`. :attr:`OptotuneLens.current_setpoint_ma`
+  and :attr:`OptotuneLens.focal_power_setpoint_dpt` hold the set-point as last set
+  (``None`` after a failure: unknown).
+* A reply that arrives after its query timed out is never taken as the answer to a later
+  query (the transport resynchronises with a fence query first), and replies are decoded
+  by their expected length (see :mod:`tdfd.driver.transport`).
 
 Every failure is a :class:`~tdfd.errors.DriverError` subclass: out-of-range set-points
 :class:`~tdfd.errors.LensRangeError`, a command in the wrong mode
 :class:`~tdfd.errors.LensModeError`, an ``E``/``N`` answer
 :class:`~tdfd.errors.DeviceErrorReply`, silence :class:`~tdfd.errors.LensTimeoutError`
-(after ``retries`` further attempts), a vanished port
+(after ``retries`` further attempts), a set-point that does not read back
+:class:`~tdfd.errors.LensStateError`, a vanished port
 :class:`~tdfd.errors.LensConnectionError`. ``RESET`` cannot be sent.
 """
 
@@ -28,8 +44,10 @@ from typing import Any
 from ..errors import (
     DeviceErrorReply,
     InputError,
+    DriverError,
     LensModeError,
     LensRangeError,
+    LensStateError,
     LensTimeoutError,
     ProtocolError,
 )
@@ -45,8 +63,13 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: further attempts after a timeout, a bad CRC, or an ``E 1`` (command CRC failed) answer.
+#: further attempts after a timeout, a bad CRC, or an ``E 1`` (command CRC failed) or
+#: ``E 3`` (not recognised: a corrupted prefix) answer; also the re-sends of a verified set.
 DEFAULT_RETRIES = 2
+#: device error ids that a corrupted command produces, so retrying can help.
+_TRANSMISSION_ERRORS = (1, 3)
+#: commands that change the operating mode: a lost reply leaves the mode unknown.
+_MODE_COMMANDS = frozenset({b"Start", b"MwDA", b"MwCA"})
 #: (lower, upper) temperature limits in °C sent before switching to focal-power mode.
 DEFAULT_TEMPERATURE_LIMITS_C = (20.0, 40.0)
 
@@ -61,9 +84,12 @@ class OptotuneLens:
             a test double).
         timeout_s: time allowed for one reply, seconds.
         retries: further attempts for a command with a reply after a timeout, a bad
-            reply CRC (or other unreadable reply), or an ``E 1`` answer (the command arrived corrupted). Commands
-            without a reply are never retried and never read.
+            reply CRC (or other unreadable reply), or an ``E 1``/``E 3`` answer (the
+            command arrived corrupted). Commands without a reply are never retried and,
+            unless verified, never read; a verified set is sent at most ``1 + retries`` times.
         owns_port: close ``port`` in :meth:`close`.
+        verify: default of the ``verify`` argument of :meth:`set_current_ma` and
+            :meth:`set_focal_power_dpt`: read every set-point back.
 
     Attributes:
         transport: the :class:`~tdfd.driver.transport.SerialTransport`.
@@ -71,7 +97,13 @@ class OptotuneLens:
         firmware_type: ``H`` reply letter, or ``None`` until read.
         max_current_ma: maximum output current (``CrMA``), mA, or ``None`` until read.
         current_limits_ma: (lower, upper) software current limits, mA, or ``None``.
-        mode: the operating mode as last read or set, or ``None`` if unknown.
+        mode: the operating mode as last read or set, or ``None`` if unknown (never
+            read, ``MMA`` unavailable, or a mode change whose reply was lost).
+        current_setpoint_ma: the output current as last set (read back if verified), mA;
+            ``None`` if unknown (after a failed set, a mode change, in focal-power mode).
+        focal_power_setpoint_dpt: the focal power as last set (read back if verified),
+            dpt; ``None`` if unknown or not in focal-power mode.
+        verify: see above.
         focal_power_limits: the limits of the last ``MwCA`` reply, or ``None``.
         temperature_limits_c: (lower, upper) temperature limits last sent, °C, or ``None``.
     """
@@ -83,6 +115,7 @@ class OptotuneLens:
         timeout_s: float = DEFAULT_TIMEOUT_S,
         retries: int = DEFAULT_RETRIES,
         owns_port: bool = False,
+        verify: bool = False,
     ) -> None:
         if int(retries) < 0:
             raise InputError(f"retries must be >= 0, got {retries}")
@@ -93,6 +126,10 @@ class OptotuneLens:
         self.current_limits_ma: tuple[float, float] | None = None
         self._current_limits_raw: tuple[int, int] | None = None
         self.mode: Mode | None = None
+        self.current_setpoint_ma: float | None = None
+        self.focal_power_setpoint_dpt: float | None = None
+        self.verify = bool(verify)
+        self._mode_readable = True
         self.focal_power_limits: FocalPowerLimits | None = None
         self.temperature_limits_c: tuple[float, float] | None = None
         self._lock = threading.RLock()
@@ -108,6 +145,7 @@ class OptotuneLens:
         timeout_s: float = DEFAULT_TIMEOUT_S,
         retries: int = DEFAULT_RETRIES,
         handshake: bool = True,
+        verify: bool = False,
     ) -> OptotuneLens:
         """Open the named port or pyserial URL and :meth:`connect`.
 
@@ -120,13 +158,14 @@ class OptotuneLens:
             timeout_s: time allowed for one reply, seconds.
             retries: see the class.
             handshake: send ``Start`` first.
+            verify: read every set-point back (see the class).
 
         Raises:
             LensConnectionError: the port cannot be opened or vanished.
             DriverError: the device did not identify itself.
         """
         port = open_port(port_or_url, baudrate=baudrate, timeout_s=timeout_s)
-        lens = cls(port, timeout_s=timeout_s, retries=retries, owns_port=True)
+        lens = cls(port, timeout_s=timeout_s, retries=retries, owns_port=True, verify=verify)
         try:
             lens.connect(handshake=handshake)
         except BaseException:
@@ -154,6 +193,8 @@ class OptotuneLens:
             except DeviceErrorReply as exc:  # MMA missing on some firmware: mode stays unknown
                 log.warning("cannot read the operating mode: %s", exc)
                 self.mode = None
+                if exc.code == 2:
+                    self._mode_readable = False
             log.info(
                 "lens driver: firmware type %s, max current %.2f mA, current limits %s mA, mode %s",
                 self.firmware_type,
@@ -180,35 +221,83 @@ class OptotuneLens:
     # ------------------------------------------------------------------ exchanges
 
     def _query(self, frame: bytes) -> Frame:
-        """Send a command that has a reply; retry on timeouts, bad CRCs and ``E 1``."""
+        """Send a command that has a reply; retry on timeouts, bad CRCs, ``E 1`` and ``E 3``.
+
+        If a mode-changing command (``Start``, ``MwDA``, ``MwCA``) fails, it may still have
+        acted: the mode and set-points become unknown (``None``).
+        """
         prefix = p.reply_prefix_for(frame)
         assert prefix is not None, "use _send for commands without a reply"
-        name = p.command_spec_for(frame).name.decode()  # type: ignore[union-attr]
+        spec = p.command_spec_for(frame)
+        assert spec is not None
+        name = spec.name.decode()
         last: Exception | None = None
         with self._lock:
-            for attempt in range(self.retries + 1):
-                try:
-                    return self.transport.exchange(frame, prefix)  # type: ignore[return-value]
-                except (LensTimeoutError, ProtocolError) as exc:  # ProtocolError includes ChecksumError
-                    last = exc
-                except DeviceErrorReply as exc:
-                    if exc.code != 1:  # not a transmission error: retrying cannot help
-                        raise
-                    last = exc
-                log.warning("%s: attempt %d of %d failed: %s", name, attempt + 1, self.retries + 1, last)
-        assert last is not None
-        raise last
+            try:
+                for attempt in range(self.retries + 1):
+                    try:
+                        return self.transport.exchange(frame, prefix)  # type: ignore[return-value]
+                    except (LensTimeoutError, ProtocolError) as exc:  # ProtocolError includes ChecksumError
+                        last = exc
+                    except DeviceErrorReply as exc:
+                        if exc.code not in _TRANSMISSION_ERRORS:  # retrying cannot help
+                            raise
+                        last = exc
+                    log.warning("%s: attempt %d of %d failed: %s", name, attempt + 1, self.retries + 1, last)
+                assert last is not None
+                raise last
+            except DriverError:
+                if spec.name in _MODE_COMMANDS:
+                    self._forget_mode(f"{name} failed")
+                raise
 
     def _send(self, frame: bytes) -> None:
-        """Send a command that has no reply; read nothing."""
+        """Send a command that has no reply; read nothing.
+
+        A pending resynchronisation (a reply lost earlier) is retried up to ``retries``
+        times first; the command itself is sent once.
+        """
         with self._lock:
+            for attempt in range(self.retries + 1):
+                if not self.transport.unsynchronised:
+                    break
+                try:
+                    self.transport.resynchronise()
+                except (LensTimeoutError, ProtocolError) as exc:
+                    if attempt == self.retries:
+                        raise
+                    log.warning("resynchronising: attempt %d of %d failed: %s", attempt + 1, self.retries + 1, exc)
             self.transport.exchange(frame, None)
+
+    def _forget_mode(self, why: str) -> None:
+        """The device may have changed mode without our knowing: mode and set-points unknown."""
+        log.warning("%s: the operating mode is unknown until read again", why)
+        self.mode = None
+        self.focal_power_limits = None
+        self.current_setpoint_ma = None
+        self.focal_power_setpoint_dpt = None
+
+    def _known_mode(self) -> Mode | None:
+        """The mode, read (``MMA``) first if unknown and readable; ``None`` if it cannot be read."""
+        if self.mode is None and self._mode_readable:
+            try:
+                self.get_mode()
+            except DeviceErrorReply as exc:
+                if exc.code != 2:
+                    raise
+                log.warning("cannot read the operating mode: %s", exc)
+                self._mode_readable = False
+        return self.mode
 
     # ------------------------------------------------------------------ identification
 
     def handshake(self) -> None:
-        """Send ``Start`` and expect ``Ready``. The driver zeroes its output current."""
-        self._query(p.encode_start())
+        """Send ``Start`` and expect ``Ready``. The driver zeroes its output current and selects current mode."""
+        with self._lock:
+            self._query(p.encode_start())
+            self.mode = Mode.CURRENT if self._mode_readable else None
+            self.current_setpoint_ma = 0.0
+            self.focal_power_setpoint_dpt = None
 
     def get_firmware_type(self) -> str:
         """Firmware type letter (``A``, ``B``, ``C``, ``E``, ``F``); also cached in :attr:`firmware_type`."""
@@ -259,19 +348,27 @@ class OptotuneLens:
     def _max_current(self) -> float:
         return self.max_current_ma if self.max_current_ma is not None else self.get_max_current_ma()
 
-    def set_current_ma(self, current_ma: float) -> None:
-        """Set the output current (``Aw``; the driver sends no reply and none is read).
+    def set_current_ma(self, current_ma: float, *, verify: bool | None = None) -> None:
+        """Set the output current (``Aw``; the driver sends no reply).
 
         Args:
             current_ma: output current, mA; negative currents are allowed.
+            verify: read the current back (``Ar``) and re-send a command the device did
+                not take (rejected as corrupted, or lost); ``None``: :attr:`verify`.
+                Unverified, nothing is read and a rejected command goes unnoticed.
 
         Raises:
             LensRangeError: not finite, beyond the maximum current or the software limits.
-            LensModeError: the driver is known to be in another mode than current mode.
+            LensModeError: the driver is (or, read again, turns out to be) in another
+                mode than current mode.
+            LensStateError: verified, and the current still reads back otherwise after
+                ``1 + retries`` sends.
         """
+        verify = self.verify if verify is None else bool(verify)
         with self._lock:
-            if self.mode is not None and self.mode != Mode.CURRENT:
-                raise LensModeError(f"set_current_ma needs current mode, the driver is in {self.mode.name} mode: call set_current_mode()")
+            mode = self._known_mode()
+            if mode is not None and mode != Mode.CURRENT:
+                raise LensModeError(f"set_current_ma needs current mode, the driver is in {mode.name} mode: call set_current_mode()")
             max_ma = self._max_current()
             if self._current_limits_raw is None:
                 self.get_current_limits_ma()
@@ -280,7 +377,34 @@ class OptotuneLens:
             if not lower <= raw <= upper:
                 lo_ma, hi_ma = self.current_limits_ma  # type: ignore[misc]
                 raise LensRangeError(f"current {current_ma} mA outside the software limits [{lo_ma:.2f}, {hi_ma:.2f}] mA")
-            self._send(p.encode_set_current(raw))
+            self.current_setpoint_ma = None  # unknown until sent (and, if asked, read back)
+            frame = p.encode_set_current(raw)
+            if verify:
+                self._set_verified(frame, p.encode_get_current(), raw, Mode.CURRENT, "current")
+            else:
+                self._send(frame)
+            self.current_setpoint_ma = p.current_raw_to_ma(raw, max_ma)
+
+    def _set_verified(self, frame: bytes, readback: bytes, raw: int, mode: Mode, what: str) -> None:
+        """Send a set command, read the set-point back, re-send while it differs.
+
+        Raises:
+            LensModeError: a mismatch, and the mode read again is not ``mode``.
+            LensStateError: still a mismatch after ``1 + retries`` sends.
+        """
+        got = None
+        for attempt in range(self.retries + 1):
+            self._send(frame)
+            got = p.unpack_i16(self._query(readback).data)
+            if got == raw:
+                return
+            log.warning("%s set-point reads back raw %d instead of %d (send %d of %d)", what, got, raw, attempt + 1, self.retries + 1)
+            if self._mode_readable:
+                self.mode = None
+                read = self._known_mode()
+                if read is not None and read != mode:
+                    raise LensModeError(f"the driver is in {read.name} mode, the {what} set-point needs {mode.name} mode")
+        raise LensStateError(f"the {what} set-point reads back raw {got} instead of {raw} after {self.retries + 1} sends")
 
     def get_current_ma(self) -> float:
         """The output current, mA."""
@@ -299,10 +423,12 @@ class OptotuneLens:
         return self.mode
 
     def set_current_mode(self) -> None:
-        """Switch to DC current mode (``MwDA``)."""
+        """Switch to DC current mode (``MwDA``). The output current stays as it was (unknown here)."""
         with self._lock:
             self._query(p.encode_current_mode())
             self.mode = Mode.CURRENT
+            self.current_setpoint_ma = None
+            self.focal_power_setpoint_dpt = None
 
     def set_temperature_limits_c(self, lower_c: float, upper_c: float) -> FocalPowerLimits:
         """Send the temperature limits for focal-power mode (``PwTA``).
@@ -348,6 +474,8 @@ class OptotuneLens:
                 raise ProtocolError(f"focal-power limits reversed: {limits}")
             self.focal_power_limits = limits
             self.mode = Mode.FOCAL_POWER
+            self.current_setpoint_ma = None
+            self.focal_power_setpoint_dpt = None  # the driver keeps a set-point of its own choosing
             if limits.status & StatusFlags.NO_TEMPERATURE_LIMITS:
                 log.warning("the driver reports no temperature limits after PwTA")
             log.info("focal-power mode: %.3f to %.3f dpt", limits.min_dpt, limits.max_dpt)
@@ -358,21 +486,31 @@ class OptotuneLens:
     def _firmware(self) -> str:
         return self.firmware_type if self.firmware_type is not None else self.get_firmware_type()
 
-    def set_focal_power_dpt(self, power_dpt: float) -> None:
-        """Set the focal power (``PwDA``; no reply, none is read).
+    def set_focal_power_dpt(self, power_dpt: float, *, verify: bool | None = None) -> None:
+        """Set the focal power (``PwDA``; the driver sends no reply).
 
         Args:
             power_dpt: focal power, dioptres, within :attr:`focal_power_limits`.
+            verify: read the focal power back (``PrDA``) and re-send a command the device
+                did not take; ``None``: :attr:`verify`.
 
         Raises:
-            LensModeError: not in focal-power mode (call :meth:`set_focal_power_mode`).
+            LensModeError: not in focal-power mode (call :meth:`set_focal_power_mode`),
+                also when the mode read again after a lost reply is another one.
             LensRangeError: not finite or outside the limits of the ``MCA`` reply.
             UnsupportedFirmwareError: a firmware type without documented encoding.
+            LensStateError: verified, and the set-point still reads back otherwise after
+                ``1 + retries`` sends.
         """
+        verify = self.verify if verify is None else bool(verify)
         with self._lock:
+            mode = self._known_mode()
             limits = self.focal_power_limits
-            if self.mode != Mode.FOCAL_POWER or limits is None:
-                raise LensModeError("set_focal_power_dpt needs focal-power mode: call set_focal_power_mode() first")
+            if mode != Mode.FOCAL_POWER or limits is None:
+                raise LensModeError(
+                    "set_focal_power_dpt needs focal-power mode with known limits "
+                    f"(mode {mode.name if mode else 'unknown'}): call set_focal_power_mode() first"
+                )
             firmware = self._firmware()
             raw = p.focal_power_dpt_to_raw(power_dpt, firmware)
             lo = p.focal_power_dpt_to_raw(limits.min_dpt, firmware)
@@ -381,7 +519,13 @@ class OptotuneLens:
                 raise LensRangeError(
                     f"focal power {power_dpt} dpt outside the driver's limits [{limits.min_dpt:.3f}, {limits.max_dpt:.3f}] dpt"
                 )
-            self._send(p.encode_set_focal_power(raw))
+            self.focal_power_setpoint_dpt = None  # unknown until sent (and, if asked, read back)
+            frame = p.encode_set_focal_power(raw)
+            if verify:
+                self._set_verified(frame, p.encode_get_focal_power(), raw, Mode.FOCAL_POWER, "focal-power")
+            else:
+                self._send(frame)
+            self.focal_power_setpoint_dpt = p.focal_power_raw_to_dpt(raw, firmware)
 
     def get_focal_power_dpt(self) -> float:
         """The focal power (``PrDA``), dioptres."""
