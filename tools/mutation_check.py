@@ -109,7 +109,7 @@ MUTATIONS: list[Mutation] = [
     Mutation(
         name="crc-byte-order",
         point="CRC-16/ARC byte order of commands sent to the Lens Driver 4",
-        path="tdfd/driver/protocol.py",
+        path="tdfd/driver/protocol/framing.py",
         old='return payload + crc16_arc(payload).to_bytes(2, "little")',
         new='return payload + crc16_arc(payload).to_bytes(2, "big")',
         tests=("tests/test_driver_protocol.py",),
