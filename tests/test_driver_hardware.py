@@ -84,6 +84,21 @@ def test_focal_power_mode(lens: OptotuneLens) -> None:
     lens.set_current_ma(0.0)
 
 
+def test_verified_set_points_read_back(lens: OptotuneLens) -> None:
+    """Verified sets read back within one raw step (how exact Ar/PrDA are is not documented)."""
+    lens.set_current_mode()
+    for current_ma in (15.0, -15.0, 0.0):
+        lens.set_current_ma(current_ma, verify=True)
+        assert lens.current_setpoint_ma == pytest.approx(current_ma, abs=lens.max_current_ma / 4095)
+    if lens.firmware_type in {"A", "B", "C", "E"}:
+        limits = lens.set_focal_power_mode((20.0, 40.0))
+        middle = round((limits.min_dpt + limits.max_dpt) / 2, 2)
+        lens.set_focal_power_dpt(middle, verify=True)
+        assert lens.focal_power_setpoint_dpt == pytest.approx(middle, abs=0.0051)
+        lens.set_current_mode()
+    lens.set_current_ma(0.0, verify=True)
+
+
 def test_handshake_zeroes_the_current(lens: OptotuneLens) -> None:
     lens.set_current_mode()
     lens.set_current_ma(10.0)

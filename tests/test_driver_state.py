@@ -282,3 +282,21 @@ def test_a_payload_holding_a_shorter_frame_in_a_scripted_exchange() -> None:
     assert lens.get_serial_number() == "N\r\nReady"
     assert lens.get_device_id() == "ERady\r\n"
     port.assert_done()
+
+
+def test_verified_read_back_within_one_raw_step_is_taken_as_the_set_point() -> None:
+    from tests.test_driver_lens import connect_script, scripted
+
+    aw = cmd(b"Aw" + i16(1398))  # 100 mA of 292.84 mA
+    ar = cmd(b"Ar\x00\x00")
+    lens, port = scripted(
+        connect_script()
+        + [(aw, b""), (ar, rep(b"A", i16(1399)))]  # one step off: accepted, and what the device says is kept
+        + [(aw, b""), (ar, rep(b"A", i16(1401))), (cmd(b"MMA"), rep(b"MMA", b"\x01")), (aw, b""), (ar, rep(b"A", i16(1398)))]
+    )
+    lens.connect()
+    lens.set_current_ma(100.0, verify=True)
+    assert lens.current_setpoint_ma == pytest.approx(1399 * MAX_MA / 4095)
+    lens.set_current_ma(100.0, verify=True)  # three steps off: the mode is read, the command sent again
+    assert lens.current_setpoint_ma == pytest.approx(1398 * MAX_MA / 4095)
+    port.assert_done()

@@ -8,8 +8,10 @@ Layers, from the wire up (imports point down this list):
   ``decoder`` (one frame; the resynchronising feed decoder).
 * :mod:`tdfd.driver.transport`: fixed-length, timed reads and writes over any
   pyserial-like object; drains stray input before each command.
+* :mod:`tdfd.driver.link`: bounded retries (which failures are worth another attempt).
 * :mod:`tdfd.driver.lens`: :class:`OptotuneLens`, the device API (mA, dpt, °C), with
-  range checks, typed errors and bounded retries.
+  range checks, typed errors, and a view of the device it verifies (mode re-read after a
+  lost reply, set-points read back on request).
 * :mod:`tdfd.driver.emulator` (a package): a byte-exact device model (:class:`Emulator`,
   ``device``) with first-order focal-power settling (``optics``) and an injectable
   clock, served on a pseudo-terminal by :class:`EmulatorServer` (``pty_server``) or wired

@@ -43,14 +43,14 @@ from typing import Any
 
 from ..errors import (
     DeviceErrorReply,
-    InputError,
     DriverError,
+    InputError,
     LensModeError,
     LensRangeError,
     LensStateError,
-    LensTimeoutError,
     ProtocolError,
 )
+from . import link
 from . import protocol as p
 from .protocol import FirmwareVersion, FocalPowerLimits, Frame, Mode, Status, StatusFlags
 from .transport import DEFAULT_BAUDRATE, DEFAULT_TIMEOUT_S, SerialTransport, open_port
@@ -66,10 +66,8 @@ log = logging.getLogger(__name__)
 #: further attempts after a timeout, a bad CRC, or an ``E 1`` (command CRC failed) or
 #: ``E 3`` (not recognised: a corrupted prefix) answer; also the re-sends of a verified set.
 DEFAULT_RETRIES = 2
-#: device error ids that a corrupted command produces, so retrying can help.
-_TRANSMISSION_ERRORS = (1, 3)
 #: commands that change the operating mode: a lost reply leaves the mode unknown.
-_MODE_COMMANDS = frozenset({b"Start", b"MwDA", b"MwCA"})
+_MODE_COMMANDS = (b"Start", b"MwDA", b"MwCA")
 #: (lower, upper) temperature limits in °C sent before switching to focal-power mode.
 DEFAULT_TEMPERATURE_LIMITS_C = (20.0, 40.0)
 
@@ -107,6 +105,11 @@ class OptotuneLens:
         focal_power_limits: the limits of the last ``MwCA`` reply, or ``None``.
         temperature_limits_c: (lower, upper) temperature limits last sent, °C, or ``None``.
     """
+
+    #: accepted difference between a set-point and its read-back, raw units (one step: 0.005 dpt,
+    #: about 0.07 mA): the facts do not say that ``Ar``/``PrDA`` return the set value exactly
+    #: (the emulator does; tests/test_driver_hardware.py checks a real driver).
+    READBACK_TOLERANCE_RAW = 1
 
     def __init__(
         self,
@@ -221,53 +224,23 @@ class OptotuneLens:
     # ------------------------------------------------------------------ exchanges
 
     def _query(self, frame: bytes) -> Frame:
-        """Send a command that has a reply; retry on timeouts, bad CRCs, ``E 1`` and ``E 3``.
+        """Send a command that has a reply, with retries (:func:`tdfd.driver.link.query`).
 
         If a mode-changing command (``Start``, ``MwDA``, ``MwCA``) fails, it may still have
         acted: the mode and set-points become unknown (``None``).
         """
-        prefix = p.reply_prefix_for(frame)
-        assert prefix is not None, "use _send for commands without a reply"
-        spec = p.command_spec_for(frame)
-        assert spec is not None
-        name = spec.name.decode()
-        last: Exception | None = None
         with self._lock:
             try:
-                for attempt in range(self.retries + 1):
-                    try:
-                        return self.transport.exchange(frame, prefix)  # type: ignore[return-value]
-                    except (LensTimeoutError, ProtocolError) as exc:  # ProtocolError includes ChecksumError
-                        last = exc
-                    except DeviceErrorReply as exc:
-                        if exc.code not in _TRANSMISSION_ERRORS:  # retrying cannot help
-                            raise
-                        last = exc
-                    log.warning("%s: attempt %d of %d failed: %s", name, attempt + 1, self.retries + 1, last)
-                assert last is not None
-                raise last
-            except DriverError:
-                if spec.name in _MODE_COMMANDS:
-                    self._forget_mode(f"{name} failed")
+                return link.query(self.transport, frame, self.retries)
+            except DriverError as exc:
+                if frame.startswith(_MODE_COMMANDS):
+                    self._forget_mode(f"{bytes(frame[:5])!r} failed ({exc})")
                 raise
 
     def _send(self, frame: bytes) -> None:
-        """Send a command that has no reply; read nothing.
-
-        A pending resynchronisation (a reply lost earlier) is retried up to ``retries``
-        times first; the command itself is sent once.
-        """
+        """Send a command that has no reply, once (:func:`tdfd.driver.link.send`); read nothing."""
         with self._lock:
-            for attempt in range(self.retries + 1):
-                if not self.transport.unsynchronised:
-                    break
-                try:
-                    self.transport.resynchronise()
-                except (LensTimeoutError, ProtocolError) as exc:
-                    if attempt == self.retries:
-                        raise
-                    log.warning("resynchronising: attempt %d of %d failed: %s", attempt + 1, self.retries + 1, exc)
-            self.transport.exchange(frame, None)
+            link.send(self.transport, frame, self.retries)
 
     def _forget_mode(self, why: str) -> None:
         """The device may have changed mode without our knowing: mode and set-points unknown."""
@@ -380,13 +353,16 @@ class OptotuneLens:
             self.current_setpoint_ma = None  # unknown until sent (and, if asked, read back)
             frame = p.encode_set_current(raw)
             if verify:
-                self._set_verified(frame, p.encode_get_current(), raw, Mode.CURRENT, "current")
+                raw = self._set_verified(frame, p.encode_get_current(), raw, Mode.CURRENT, "current")
             else:
                 self._send(frame)
             self.current_setpoint_ma = p.current_raw_to_ma(raw, max_ma)
 
-    def _set_verified(self, frame: bytes, readback: bytes, raw: int, mode: Mode, what: str) -> None:
+    def _set_verified(self, frame: bytes, readback: bytes, raw: int, mode: Mode, what: str) -> int:
         """Send a set command, read the set-point back, re-send while it differs.
+
+        Returns:
+            The raw set-point read back (within :attr:`READBACK_TOLERANCE_RAW` of ``raw``).
 
         Raises:
             LensModeError: a mismatch, and the mode read again is not ``mode``.
@@ -396,8 +372,8 @@ class OptotuneLens:
         for attempt in range(self.retries + 1):
             self._send(frame)
             got = p.unpack_i16(self._query(readback).data)
-            if got == raw:
-                return
+            if abs(got - raw) <= self.READBACK_TOLERANCE_RAW:
+                return got
             log.warning("%s set-point reads back raw %d instead of %d (send %d of %d)", what, got, raw, attempt + 1, self.retries + 1)
             if self._mode_readable:
                 self.mode = None
@@ -522,7 +498,7 @@ class OptotuneLens:
             self.focal_power_setpoint_dpt = None  # unknown until sent (and, if asked, read back)
             frame = p.encode_set_focal_power(raw)
             if verify:
-                self._set_verified(frame, p.encode_get_focal_power(), raw, Mode.FOCAL_POWER, "focal-power")
+                raw = self._set_verified(frame, p.encode_get_focal_power(), raw, Mode.FOCAL_POWER, "focal-power")
             else:
                 self._send(frame)
             self.focal_power_setpoint_dpt = p.focal_power_raw_to_dpt(raw, firmware)

@@ -2,9 +2,11 @@
 
 One idea per module, all re-exported here (imports point down this list):
 
-* :mod:`.optics`: :class:`Calibration` (focal power versus current and temperature) and
-  :class:`LensOptics` (first-order settling, temperature, the set-point history).
-* :mod:`.stream`: how the device splits its input into commands (no terminators).
+* :mod:`.optics`: :class:`Calibration` (focal power versus current and temperature),
+  :class:`LensOptics` (first-order settling, temperature, the set-point history) and the
+  reachable focal-power range.
+* :mod:`.stream`: how the device splits its input into commands (no terminators):
+  :class:`~tdfd.driver.emulator.stream.CommandStream`.
 * :mod:`.device`: :class:`Emulator`, the device model. :meth:`Emulator.handle` answers
   one complete command frame with the reply bytes (byte-exact, CRCs included);
   :meth:`Emulator.feed` takes a raw byte stream and returns the replies. It keeps the

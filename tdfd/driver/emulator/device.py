@@ -2,7 +2,7 @@
 
 :meth:`Emulator.handle` answers one complete command frame with the reply bytes
 (byte-exact, CRCs included); :meth:`Emulator.feed` takes a raw byte stream (split by
-:func:`~tdfd.driver.emulator.stream.split_command`) and returns the replies. The optics
+:class:`~tdfd.driver.emulator.stream.CommandStream`) and returns the replies. The optics
 (settling, temperature) are :class:`~tdfd.driver.emulator.optics.LensOptics`.
 
 Behaviour (documented assumptions, not manufacturer data):
@@ -23,7 +23,6 @@ Behaviour (documented assumptions, not manufacturer data):
 from __future__ import annotations
 
 import logging
-import math
 import struct
 import threading
 import time
@@ -33,15 +32,14 @@ from typing import Callable
 from ...errors import InputError
 from .. import protocol as p
 from ..protocol import Mode, StatusFlags
-from .optics import DEFAULT_SETTLING_TIME_S, Calibration, LensOptics
-from .stream import Piece, split_command
+from .optics import DEFAULT_SETTLING_TIME_S, Calibration, LensOptics, reachable_focal_power_raw
+from .stream import CommandStream, Piece
 
 __all__ = ["Emulator"]
 
 log = logging.getLogger(__name__)
 
 _FOCAL_POWER_COMMANDS = frozenset({"MwCA", "PwTA", "PwDA", "PrDA"})
-_TYPE_A_RANGE_RAW = (0, 4095)  # −5 … +15.475 dpt
 
 
 class Emulator:
@@ -114,7 +112,7 @@ class Emulator:
         self._temperature_limits_c: tuple[float, float] | None = None
         self._cannot_reach = False
         self.reset_received = False
-        self._buf = bytearray()
+        self._stream = CommandStream()
         #: (time, command name) of every well-formed command received, most recent last.
         self.command_log: deque[tuple[float, str]] = deque(maxlen=10000)
         self.command_count = 0
@@ -227,19 +225,8 @@ class Emulator:
         return self.firmware_type if self.focal_power_capable else "B"
 
     def _focal_power_limits_raw(self, now: float) -> tuple[int, int]:
-        lo_ma, hi_ma = self.current_limits_ma
-        if self._temperature_limits_c is not None:
-            t_lo, t_hi = self._temperature_limits_c
-        else:
-            t_lo = t_hi = self.temperature_at(now)
-        c = self.calibration
-        enc = self._encoding()
-        lo = math.ceil((c.power_dpt(lo_ma, t_lo) + p.FOCAL_POWER_FIRMWARE_TYPES[enc]) * 200.0 - 1e-9)
-        hi = math.floor((c.power_dpt(hi_ma, t_hi) + p.FOCAL_POWER_FIRMWARE_TYPES[enc]) * 200.0 + 1e-9)
-        if enc == "A":
-            lo, hi = max(lo, _TYPE_A_RANGE_RAW[0]), min(hi, _TYPE_A_RANGE_RAW[1])
-        lo, hi = max(lo, -0x8000), min(hi, 0x7FFF)
-        return (lo, max(lo, hi))
+        temperatures = self._temperature_limits_c or (self.temperature_at(now),) * 2
+        return reachable_focal_power_raw(self.calibration, self.current_limits_ma, temperatures, self._encoding())
 
     def _output_current_raw(self, now: float) -> int:
         if self._mode == Mode.FOCAL_POWER and self._setpoint_dpt is not None:
@@ -407,16 +394,12 @@ class Emulator:
     @property
     def pending(self) -> bytes:
         """Bytes of an incomplete command held back by :meth:`feed`."""
-        return bytes(self._buf)
+        return self._stream.pending
 
     def discard_partial(self) -> bytes:
         """Drop an incomplete buffered command (the server calls this after an idle gap)."""
         with self._lock:
-            dropped = bytes(self._buf)
-            self._buf.clear()
-            if dropped:
-                log.info("emulator: discarded incomplete command %s", dropped.hex(" "))
-            return dropped
+            return self._stream.discard()
 
     def feed(self, data: bytes) -> list[bytes]:
         """Take received bytes; answer every complete command in them.
@@ -429,16 +412,10 @@ class Emulator:
         """
         replies: list[bytes] = []
         with self._lock:
-            self._buf += bytes(data)
-            while self._buf:
+            for piece, chunk in self._stream.feed(data):
                 if self.reset_received:
-                    self._buf.clear()
+                    self._stream.discard()
                     break
-                piece, length = split_command(self._buf)
-                if piece is Piece.PARTIAL:
-                    break
-                chunk = bytes(self._buf[:length])
-                del self._buf[:length]
                 if piece is Piece.COMMAND:
                     answer = self.handle(chunk)
                     if answer:
@@ -446,4 +423,6 @@ class Emulator:
                 else:
                     log.info("emulator: unrecognised bytes %s", chunk[:32].hex(" "))
                     replies.append(self._error(3))
+            if self.reset_received:
+                self._stream.discard()
         return replies

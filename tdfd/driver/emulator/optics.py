@@ -21,13 +21,16 @@ import logging
 import math
 from dataclasses import dataclass
 
-__all__ = ["Calibration", "LensOptics", "DEFAULT_SETTLING_TIME_S"]
+from .. import protocol as p
+
+__all__ = ["Calibration", "LensOptics", "reachable_focal_power_raw", "DEFAULT_SETTLING_TIME_S"]
 
 log = logging.getLogger(__name__)
 
 #: time for a focal-power step to settle within 1 %, seconds (EL-10-30: about 15 ms).
 DEFAULT_SETTLING_TIME_S = 0.015
 _HISTORY_MAX = 20000
+_TYPE_A_RANGE_RAW = (0, 4095)  # −5 … +15.475 dpt
 
 
 @dataclass(frozen=True)
@@ -65,6 +68,31 @@ class Calibration:
         return (power_dpt - self.offset_dpt - self.drift_dpt(t)) / self.slope_dpt_per_ma
 
 
+
+
+def reachable_focal_power_raw(
+    calibration: Calibration,
+    current_limits_ma: tuple[float, float],
+    temperature_limits_c: tuple[float, float],
+    encoding: str,
+) -> tuple[int, int]:
+    """The focal-power range (raw, ``encoding``'s units) reachable at every temperature between the limits.
+
+    With currents inside the software limits: the lower end at the lower current and lower
+    temperature, the upper end at the upper current and upper temperature (the drift is
+    negative); type A clips to its encodable −5…+15.475 dpt.
+
+    Examples:
+        >>> reachable_focal_power_raw(Calibration(), (-292.84, 292.84), (25.0, 25.0), "A")
+        (0, 1709)
+    """
+    offset = p.FOCAL_POWER_FIRMWARE_TYPES[encoding]
+    lo = math.ceil((calibration.power_dpt(current_limits_ma[0], temperature_limits_c[0]) + offset) * 200.0 - 1e-9)
+    hi = math.floor((calibration.power_dpt(current_limits_ma[1], temperature_limits_c[1]) + offset) * 200.0 + 1e-9)
+    if encoding == "A":
+        lo, hi = max(lo, _TYPE_A_RANGE_RAW[0]), min(hi, _TYPE_A_RANGE_RAW[1])
+    lo, hi = max(lo, -0x8000), min(hi, 0x7FFF)
+    return (lo, max(lo, hi))
 
 
 class LensOptics:

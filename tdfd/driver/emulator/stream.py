@@ -9,10 +9,14 @@ start; the device answers them with one ``E 3`` ("not recognised").
 from __future__ import annotations
 
 import enum
+import logging
+from collections.abc import Iterator
 
 from .. import protocol as p
 
-__all__ = ["Piece", "split_command", "PARSE_TABLE"]
+log = logging.getLogger(__name__)
+
+__all__ = ["Piece", "split_command", "CommandStream", "PARSE_TABLE"]
 
 #: the emulator also recognises RESET (to refuse it loudly), which protocol.COMMANDS omits.
 _RESET_SPEC = p.CommandSpec(p.FORBIDDEN_PREFIX, 0, None, crc=False)
@@ -65,3 +69,46 @@ def split_command(buf: bytes | bytearray) -> tuple[Piece, int]:
     while j < len(buf) and not _could_start_command(buf, j):
         j += 1
     return (Piece.JUNK, j)
+
+
+class CommandStream:
+    """The device's input buffer: received bytes in, whole commands and junk out.
+
+    Examples:
+        >>> stream = CommandStream()
+        >>> [(piece.name, chunk) for piece, chunk in stream.feed(b"\\x00MMA\\x00\\x00Cr")]
+        [('JUNK', b'\\x00'), ('COMMAND', b'MMA\\x00\\x00')]
+        >>> stream.pending
+        b'Cr'
+    """
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+
+    @property
+    def pending(self) -> bytes:
+        """Bytes of an incomplete command held back."""
+        return bytes(self._buf)
+
+    def discard(self) -> bytes:
+        """Drop the held-back bytes; return them."""
+        dropped = bytes(self._buf)
+        self._buf.clear()
+        if dropped:
+            log.info("emulator: discarded incomplete command %s", dropped.hex(" "))
+        return dropped
+
+    def feed(self, data: bytes) -> Iterator[tuple[Piece, bytes]]:
+        """Add received bytes; yield each whole command or run of junk, in order.
+
+        Each piece leaves the buffer before it is yielded; what stays is an incomplete
+        command (:attr:`pending`).
+        """
+        self._buf += bytes(data)
+        while self._buf:
+            piece, length = split_command(self._buf)
+            if piece is Piece.PARTIAL:
+                return
+            chunk = bytes(self._buf[:length])
+            del self._buf[:length]
+            yield piece, chunk
