@@ -64,7 +64,9 @@ def test_dfd_trials_in_focus_with_two_frames(bench):
 def test_bench_timeline(bench):
     """Hardware trigger, 2 ms exposure, 3 ms read-out, 15 ms settling, 5 ms compute, 115200 baud."""
     r = bench.run_trial(0.5, "dfd")
-    wire = 10 * 10 / 115200  # one 10-byte PwDA frame
+    # one 10-byte PwDA frame, then the driver's read-back (10-byte PrDA query, 8-byte PD reply)
+    # before settling is counted: the set-point is known to be in place only then
+    wire = (10 + 10 + 8) * 10 / 115200
     t_f1 = wire + 0.015  # exposure of f1 starts when the lens has settled
     t_f2 = t_f1 + 0.002 + wire + 0.015  # P2 commanded at the end of f1's exposure
     expected = t_f2 + 0.002 + 0.003 + 0.005 + wire + 0.015
