@@ -35,7 +35,9 @@ from tdfd.camera import Camera
 from tdfd.errors import ModelError
 from tdfd.grid import grid_shape
 
-from .onnx_export import INPUT_NAMES, METADATA_KEYS, MIN_OPSET, OUTPUT_NAMES, _export_mode
+from tdfd.contract import CAMERA_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET, OUTPUT_NAMES
+
+from .onnx_export import _export_mode
 
 __all__ = ["DEFAULT_SIZES", "DEFAULT_BATCHES", "ParityReport", "check_contract", "realistic_pairs",
            "procedural_texture", "verify_onnx"]
@@ -174,15 +176,15 @@ def check_contract(proto: onnx.ModelProto, model: nn.Module | None = None) -> di
         except json.JSONDecodeError as exc:
             raise ModelError(f"metadata {key!r} is not JSON: {exc}") from exc
     try:
-        camera = Camera.from_dict(parsed["tdfd.camera"])  # type: ignore[arg-type]
+        camera = Camera.from_dict(parsed[CAMERA_KEY])  # type: ignore[arg-type]
     except Exception as exc:
         raise ModelError(f"metadata 'tdfd.camera' is not a valid camera: {exc}") from exc
-    grid = parsed["tdfd.grid"]
+    grid = parsed[GRID_KEY]
     if not isinstance(grid, dict) or sorted(grid) != ["stride", "tile"]:
         raise ModelError(f"metadata 'tdfd.grid' must be {{'tile', 'stride'}}, got {grid!r}")
     if model is not None:
-        if parsed["tdfd.camera"] != model.camera.to_dict():
-            raise ModelError(f"metadata camera {parsed['tdfd.camera']} differs from the model's {model.camera.to_dict()}")
+        if parsed[CAMERA_KEY] != model.camera.to_dict():
+            raise ModelError(f"metadata camera {parsed[CAMERA_KEY]} differs from the model's {model.camera.to_dict()}")
         if (grid["tile"], grid["stride"]) != (int(model.tile), int(model.stride)):
             raise ModelError(f"metadata grid {grid} differs from the model's tile={model.tile}, stride={model.stride}")
     del camera
