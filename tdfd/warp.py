@@ -67,10 +67,24 @@ def _magnify_shift(img: torch.Tensor, scale: float, shift_y: float, shift_x: flo
 
 
 def misregister(frames: torch.Tensor, breathing: float, shift_y_px: float, shift_x_px: float) -> torch.Tensor:
-    """Apply focus breathing and misregistration to pairs ``(B, 2, H, W)``: frame 2 ends
-    magnified by ``1 + breathing`` and shifted by ``(shift_y_px, shift_x_px)`` relative to
-    frame 1, the warp split half and half between the frames (separable Keys cubic
-    resampling, reflected borders). Zero parameters return the input unchanged."""
+    """Apply focus breathing and misregistration to a frame pair.
+
+    Frame 2 ends magnified by ``1 + breathing`` about the image centre and shifted by
+    ``(shift_y_px, shift_x_px)`` relative to frame 1; the warp is split half and half between
+    the frames (separable Keys cubic resampling, reflected borders). Zero parameters return
+    the input unchanged.
+
+    Args:
+        frames: ``(B, 2, H, W)`` (frame 1, frame 2 as channels).
+        breathing: relative magnification of frame 2 minus 1 (e.g. ``0.01``).
+        shift_y_px, shift_x_px: displacement of frame 2's content in pixels.
+
+    Returns:
+        ``(B, 2, H, W)``.
+
+    Raises:
+        ShapeError: ``frames`` is not ``(B, 2, H, W)``.
+    """
     if frames.ndim != 4 or frames.shape[1] != 2:
         raise ShapeError(f"frames must be (B, 2, H, W), got {tuple(frames.shape)}")
     if breathing == 0 and shift_y_px == 0 and shift_x_px == 0:

@@ -1,7 +1,5 @@
 """Thin-lens geometry, PSFs and rendering: physics identities and gradients."""
 
-import math
-
 import pytest
 import torch
 
