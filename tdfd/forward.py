@@ -230,7 +230,8 @@ class PlanePairs:
         sharp = torch.cat(texs).float()
         near, far = self.camera.depth_range_m
         q = 1.0 / far + torch.rand(batch, self.planes, generator=g, dtype=torch.float64) * (1.0 / near - 1.0 / far)
-        cuts = torch.sort(torch.randint(width // 4, 3 * width // 4 + 1, (batch, self.planes - 1), generator=g), 1).values
+        cuts = torch.randint(width // 4, 3 * width // 4 + 1, (batch, self.planes - 1), generator=g)
+        cuts = torch.sort(cuts, 1).values
         col = torch.arange(width)
         idx = (col[None, None, :] >= cuts[:, :, None]).sum(1)  # (B, W): plane of every column
         depth = (1.0 / q).gather(1, idx).float()[:, None, None, :].expand(batch, 1, height, width).contiguous()

@@ -8,7 +8,8 @@ from tdfd.errors import InputError, NonFiniteError, ShapeError
 from tdfd.optics import (blur_radius, camera_sigmas, defocus_layered, defocus_uniform, depth_from_sigma,
                          depth_from_square_difference, depth_from_square_difference_sensor_varying,
                          gaussian_otf, gaussian_psf, kernel_size_for, pillbox_otf, pillbox_psf,
-                         gaussian_psf_1d, power_exponential_psf, psf_kernel, sampled_psf, psf_second_moment, render_at_power, render_pair,
+                         gaussian_psf_1d, power_exponential_psf, psf_kernel, psf_second_moment, render_at_power,
+                         render_pair, sampled_psf,
                          sensor_varying_sigmas, sigma_difference, sigma_from_depth, sigma_map)
 
 REF = Camera.preset("reference")
