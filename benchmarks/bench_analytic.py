@@ -17,7 +17,8 @@ import torch
 
 from tdfd import Camera
 from tdfd.dfd import FourierRatioDFD
-from tdfd.optics import camera_sigmas, render_pair
+from tdfd.forward import defocus_pair
+from tdfd.optics import camera_sigmas
 from tdfd.textures import fractal
 
 from .report import markdown_table, median_time, update_section
@@ -35,7 +36,8 @@ def accuracy(camera: Camera, configs: dict[str, FourierRatioDFD], scenes: int, s
     for d in DISTANCES:
         g = torch.Generator().manual_seed(seed + int(d * 1000))
         x = pink_texture(size, scenes, g)
-        i1, i2 = render_pair(camera, x, torch.full_like(x, d))
+        pair = defocus_pair(camera, x, torch.full_like(x, d))  # the forward model's optics, no sensor
+        i1, i2 = pair[:, 0:1], pair[:, 1:2]
         s1, s2 = camera_sigmas(camera, d)
         row: list[object] = [f"{d:.2f}", f"{float(s1):+.2f} / {float(s2):+.2f}"]
         for m in configs.values():

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import statistics
 from pathlib import Path
 
@@ -41,7 +40,7 @@ from tdfd import Camera
 from tdfd.dfd import FourierRatioDFD
 from tdfd.dfd.calibrate import calibrate_mu
 from tdfd.illumination import CoherentIllumination, ProjectorIllumination, illuminate
-from tdfd.optics import render_pair
+from tdfd.forward import Defocus, DFDForward
 from tdfd.sensor import SensorModel
 
 from .report import ROOT, markdown_table, update_section
@@ -72,15 +71,15 @@ def capture(camera: Camera, source, depth_m: float, size: tuple[int, int], gener
     pattern = source.render(camera, depth, generator=generator)
     radiance = illuminate(torch.full_like(depth, 0.08), pattern, ambient=0.05, power=1.0)
     true_mu = 1.0 / (2.0 * camera.pixel_pitch_m)  # pillbox of radius r_b has RMS radius r_b / 2
-    i1, i2 = render_pair(camera, radiance.float(), depth.float(), shape=optics, mu=true_mu)
-    frames = sensor(torch.cat([i1, i2], 1).clamp_min(0.0) * 0.8, generator=generator)
+    forward = DFDForward(Defocus(camera, psf=optics, mu=true_mu), sensor)  # the library's forward model
+    frames = forward(radiance.float(), depth.float(), generator=generator)
     return frames[:, :1], frames[:, 1:]
 
 
 def run_camera(camera: Camera, size: tuple[int, int], tile: int, max_bin: int, seed: int, repeats: int,
                refine=None, optics: str = "gaussian") -> dict[str, dict[float, list[float]]]:
     """Percentage depth errors per source and distance (``repeats`` noisy captures each)."""
-    sensor = SensorModel(full_well_e=20000.0, read_noise_e=3.0, bits=12, black_level_dn=64.0)
+    sensor = SensorModel(full_well_e=20000.0, read_noise_e=3.0, bits=12, black_level_dn=64.0, exposure=0.8)
     sources = {"coherent": CoherentIllumination(), "projector": ProjectorIllumination()}
     top, left = (size[0] - tile) // 2, (size[1] - tile) // 2
     crop = lambda im: im[..., top : top + tile, left : left + tile]  # noqa: E731

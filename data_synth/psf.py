@@ -18,8 +18,10 @@ Every PSF keeps the tdfd size convention: ``sigma`` is the per-axis RMS radius i
     sign of ``sigma``: a bright rim on one side of focus, a bright core on the other. The
     profile is rescaled so that its RMS radius stays ``sigma``.
 
-Kernels are evaluated on a 3x supersampled grid and box-integrated over each pixel; they
-sum to one and collapse to a delta as ``sigma -> 0``.
+Only the aberration model lives here: the profiles, their sampling and box integration,
+the kernel-size rule and the Gaussian diffraction kernel are :mod:`tdfd.optics.psf`'s
+(:func:`~tdfd.optics.psf.sampled_psf` takes the astigmatic metric and the spherical weight
+defined here). Kernels sum to one and collapse to a delta as ``sigma -> 0``.
 
 Example:
     >>> import torch
@@ -38,8 +40,7 @@ from typing import Sequence
 import torch
 
 from tdfd.errors import InputError
-from tdfd.optics.psf import psf_kernel
-from tdfd.optics.render import gaussian_psf_1d
+from tdfd.optics.psf import gaussian_psf_1d, kernel_size_for, power_exponential_psf, psf_kernel, sampled_psf
 
 __all__ = ["PSFModel", "diffraction_sigma_px", "batch_kernel_fn"]
 
@@ -100,18 +101,17 @@ class PSFModel:
 
     @property
     def diffraction_pad(self) -> int:
-        """Half-size of the diffraction kernel (3 of its sigmas, at least 1 px; 0 if none)."""
-        return max(1, int(math.ceil(3.0 * self.diffraction_sigma_px))) if self.diffraction_sigma_px > 0 else 0
+        """Half-size of the diffraction kernel (:func:`tdfd.optics.psf.kernel_size_for` of its
+        sigma; 0 if none)."""
+        return kernel_size_for(self.diffraction_sigma_px) // 2 if self.diffraction_sigma_px > 0 else 0
 
     def kernel_size(self, sigma_max: float) -> int:
-        """Odd kernel side that holds the PSF of RMS radius ``sigma_max``: the disk of radius
-        ``2 sigma`` plus 1.5 px for the pillbox, ``3 sigma + 1`` px for the smooth shapes
-        (> 99.7 % of a Gaussian's energy per axis, more for ``beta > 2``), grown by the
-        aberration, plus the diffraction kernel."""
+        """Odd kernel side that holds the PSF of RMS radius ``sigma_max``: the library's rule
+        (:func:`tdfd.optics.psf.kernel_size_for`) for the blur grown by the aberration, plus
+        the diffraction kernel."""
         grow = (1.0 + self.astigmatism) * (1.0 + 0.5 * abs(self.spherical))
         s = abs(float(sigma_max)) * grow
-        extent = 2.0 * s + 1.5 if self.shape == "pillbox" else 3.0 * s + 1.0
-        return 2 * int(math.ceil(extent)) + 1 + 2 * self.diffraction_pad
+        return kernel_size_for(s, "pillbox" if self.shape == "pillbox" else "gaussian") + 2 * self.diffraction_pad
 
     def kernels(self, sigma: torch.Tensor, size: int | None = None, supersample: int | None = None) -> torch.Tensor:
         """PSFs ``(N, k, k)`` for signed blurs ``sigma`` ``(N,)`` in px, unit sum.
@@ -130,11 +130,12 @@ class PSFModel:
             if supersample < 1 or supersample % 2 == 0:
                 raise InputError(f"supersample must be a positive odd integer, got {supersample}")
             k = self._aberrated(sigma, core, int(supersample))
-        elif self.plain and isinstance(self.shape, str):
-            k = psf_kernel(sigma, self.shape, core)
-        else:  # power-exponential and/or aberrated: evaluated here (float32-safe, faster)
+        elif self.plain:
+            k = psf_kernel(sigma, self.shape, core) if isinstance(self.shape, str) else \
+                power_exponential_psf(sigma, float(self.shape), core)
+        else:  # aberrated: fine supersampling where the PSF is only a few pixels
             k = torch.empty(sigma.numel(), core, core, dtype=sigma.dtype)
-            small = sigma.abs() < 1.5  # fine supersampling where the PSF is only a few pixels
+            small = sigma.abs() < 1.5
             for mask, ss in ((small, 3), (~small, 1)):
                 if bool(mask.any()):
                     k[mask] = self._aberrated(sigma[mask], core, ss)
@@ -147,55 +148,34 @@ class PSFModel:
         if self.shape != "gaussian" or not self.plain:
             raise InputError("separable kernels exist only for the plain Gaussian")
         dpad = self.diffraction_pad
-        k1, _ = gaussian_psf_1d(sigma.reshape(-1), size - 2 * dpad)
+        k1 = gaussian_psf_1d(sigma.reshape(-1), size - 2 * dpad)
         if dpad:
-            g1, _ = gaussian_psf_1d(torch.tensor([self.diffraction_sigma_px], dtype=k1.dtype), 2 * dpad + 1)
+            g1 = gaussian_psf_1d(torch.tensor([self.diffraction_sigma_px], dtype=k1.dtype), 2 * dpad + 1)
             k1 = _full_conv_1d(k1, g1[0], -1)
             k1 = k1 / k1.sum(-1, keepdim=True)
         return k1, k1
 
     def _aberrated(self, sigma: torch.Tensor, size: int, ss: int = 3) -> torch.Tensor:
-        """Kernels of the (possibly aberrated) profile on an ``ss``-times supersampled grid,
-        box-integrated over pixels (``ss = 1``: pixel-centre samples; the pillbox edge then
-        gets a one-pixel anti-aliasing ramp)."""
-        n = sigma.numel()
+        """Kernels of the (possibly aberrated) profile on an ``ss``-times supersampled grid
+        (:func:`tdfd.optics.psf.sampled_psf`): the astigmatic stretch is a metric on the
+        sample grid, the spherical aberration a radial weight, and the RMS radius is
+        rescaled so that the weighted profile keeps ``sigma``."""
         sgn = torch.where(sigma < 0, -1.0, 1.0).to(sigma.dtype)
         s_sph = self.spherical * sgn  # (N,)
         s_ast = self.astigmatism * sgn
-        kappa = _kurtosis(self.beta)
-        scale = 1.0 / torch.sqrt(1.0 + s_sph * (kappa - 1.0))
-        sig = (sigma.abs() * scale).clamp_min(1e-4)[:, None, None]
-        if ss == 1 and self.shape != "pillbox":
-            # pixel-centre samples of a smooth profile: add the pixel's 1/12 px^2 of variance
-            # (what box integration adds; the pillbox gets its one-pixel edge ramp instead)
-            sig = torch.sqrt(sig * sig + 1.0 / 12.0)
-        # supersampled pixel grid (odd ss keeps a sample on each pixel centre)
-        m = size * ss
-        t = (torch.arange(m, dtype=sigma.dtype) - (m - 1) / 2.0) / ss
-        yy, xx = t[:, None], t[None, :]
+        scale = 1.0 / torch.sqrt(1.0 + s_sph * (_kurtosis(self.beta) - 1.0))
+        radius2 = weight = None
         if self.astigmatism:
             c, s = math.cos(self.astigmatism_angle), math.sin(self.astigmatism_angle)
-            u = (c * xx + s * yy)[None] / (1.0 + s_ast)[:, None, None]
-            v = (c * yy - s * xx)[None] / (1.0 - s_ast)[:, None, None]
-            r2 = u * u + v * v
-        else:
-            r2 = (xx * xx + yy * yy)[None].expand(n, m, m)
-        if self.shape == "pillbox":
-            prof = ((2.0 * sig - torch.sqrt(r2)) * ss + 0.5).clamp(0.0, 1.0)
-        elif self.beta == 2.0:
-            prof = torch.exp(-0.5 * r2 / (sig * sig))
-        else:  # exp(-(r / alpha)^beta), computed in logs so that it cannot overflow
-            b = self.beta
-            alpha = sig * math.sqrt(2.0 * math.exp(math.lgamma(2.0 / b) - math.lgamma(4.0 / b)))
-            expo = (0.5 * b) * (torch.log(r2.clamp_min(1e-30)) - 2.0 * torch.log(alpha))
-            prof = torch.exp(-torch.exp(expo.clamp(max=80.0)))
+
+            def radius2(yy: torch.Tensor, xx: torch.Tensor) -> torch.Tensor:
+                u = (c * xx + s * yy)[None] / (1.0 + s_ast)[:, None, None]
+                v = (c * yy - s * xx)[None] / (1.0 - s_ast)[:, None, None]
+                return u * u + v * v
         if self.spherical:
-            prof = prof * (1.0 + s_sph[:, None, None] * (r2 / (2.0 * sig * sig) - 1.0)).clamp_min(0.0)
-        k = prof.reshape(n, size, ss, size, ss).sum((-1, -3)) if ss > 1 else prof
-        total = k.sum((-1, -2), keepdim=True)
-        delta = torch.zeros_like(k)
-        delta[:, size // 2, size // 2] = 1.0
-        return torch.where(total > 1e-12, k / total.clamp_min(1e-30), delta)
+            def weight(r2: torch.Tensor, sig: torch.Tensor) -> torch.Tensor:
+                return (1.0 + s_sph[:, None, None] * (r2 / (2.0 * sig * sig) - 1.0)).clamp_min(0.0)
+        return sampled_psf(sigma.abs() * scale, self.beta, size, ss, radius2, weight)
 
 
 def _full_conv_1d(x: torch.Tensor, taps: torch.Tensor, dim: int) -> torch.Tensor:
@@ -212,7 +192,7 @@ def _full_conv_1d(x: torch.Tensor, taps: torch.Tensor, dim: int) -> torch.Tensor
 
 def _convolve_gaussian(k: torch.Tensor, sigma_px: float, pad: int) -> torch.Tensor:
     """Full convolution of kernels ``(N, k, k)`` with a pixel-integrated Gaussian (grows by ``2 pad``)."""
-    g1, _ = gaussian_psf_1d(torch.tensor([sigma_px], dtype=k.dtype), 2 * pad + 1)
+    g1 = gaussian_psf_1d(torch.tensor([sigma_px], dtype=k.dtype), 2 * pad + 1)
     x = _full_conv_1d(_full_conv_1d(k, g1[0], -1), g1[0], -2)
     return x / x.sum((-1, -2), keepdim=True)
 

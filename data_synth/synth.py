@@ -1,25 +1,24 @@
-r"""The synthesiser: scene -> defocus pair -> breathing/misregistration -> sensor.
+r"""The synthesiser: random scenes and parameters through the forward model (:mod:`tdfd.forward`).
 
 :class:`SynthBatchGenerator` makes sample ``index`` of stream ``seed`` from its own
 generator (:func:`~data_synth.params.sample_generator`), so every sample is a pure function
 of ``(config, camera, size, seed, index)``: the same bytes whatever the batch it is made in,
 the worker that makes it, or the order of requests.
 
-Image formation per sample:
+Image formation per sample (the draws in this order from the sample's generator, which
+then feeds the sensor noise; :class:`tdfd.forward.DFDForward` composes steps 2-4):
 
 1. :func:`~data_synth.scenes.make_scene`: sharp radiance and depth.
-2. Both frames in one pass of :func:`tdfd.optics.render.defocus_layered_multi` (the camera's
+2. Both frames in one pass (:func:`tdfd.forward.defocus_pair`: the camera's
    two ECVFL powers share one layer decomposition; their blur maps differ by the constant
    of paper eq. 6) with the sample's :class:`~data_synth.psf.PSFModel`. A fronto-parallel
    plane takes the exact single-PSF path, slanted and smooth surfaces the gather mode (no
    depth discontinuities), piecewise-planar layouts the occluding layered mode.
-3. Focus breathing and misregistration: frame 2 is magnified by ``1 + breathing`` about
-   the image centre and shifted by ``(shift_y, shift_x)`` px relative to frame 1; the warp is
-   split symmetrically (frame 1 by the inverse half, frame 2 by the half; separable Keys
-   cubic resampling), so both frames are resampled alike and the depth map stays aligned
-   with their mean.
-4. Auto-exposure to the drawn mean level, a small frame-to-frame gain difference, then
-   :class:`tdfd.sensor.SensorModel` (Poisson-Gaussian noise, black level, gain, 8-12 bit
+3. Focus breathing and misregistration (:func:`tdfd.warp.misregister`): frame 2 is
+   magnified by ``1 + breathing`` about the image centre and shifted by ``(shift_y,
+   shift_x)`` px relative to frame 1, the warp split symmetrically between the frames.
+4. A small frame-to-frame gain difference (:func:`tdfd.forward.frame_gain`), auto-exposure
+   to the drawn mean level, then :class:`tdfd.sensor.SensorModel` (Poisson-Gaussian noise, black level, gain, 8-12 bit
    quantisation, vignetting, saturation), independently per frame.
 5. ``tile_depth``: :func:`tdfd.grid.tile_true_depth` with the configured window.
 """
@@ -27,7 +26,6 @@ Image formation per sample:
 from __future__ import annotations
 
 import json
-import math
 from typing import Any, Sequence
 
 import torch
@@ -36,7 +34,7 @@ from tdfd import Camera
 from tdfd.dfd.spectra import periodic_hann
 from tdfd.errors import InputError
 from tdfd.grid import grid_shape, tile_true_depth
-from tdfd.optics.render import defocus_layered_multi, sigma_map
+from tdfd.forward import Defocus, DFDForward, IdealSensor, misregister
 from tdfd.sensor import SensorModel
 
 from .params import SynthConfig, draw_psf, draw_sensor, draw_warp, sample_generator, sample_seed
@@ -67,7 +65,8 @@ def tile_window(kind: str, tile: int) -> torch.Tensor | None:
 
 def render_frames(camera: Camera, radiance: torch.Tensor, depth_m: torch.Tensor, psf: PSFModel | Sequence[PSFModel],
                   mode: str = "auto", layer_spacing: float = 0.5) -> torch.Tensor:
-    """Both DFD frames of a scene, noise-free: ``(B, 2, H, W)``.
+    """Both DFD frames of a scene, noise-free: ``(B, 2, H, W)``: the forward model's defocus
+    stage (:func:`tdfd.forward.defocus_pair`) with the samples' lens PSFs.
 
     Args:
         camera: the camera (its two ECVFL powers, ``mu``).
@@ -78,68 +77,18 @@ def render_frames(camera: Camera, radiance: torch.Tensor, depth_m: torch.Tensor,
             ``"auto"`` (occluding; exact single PSF for constant depth).
         layer_spacing: layer spacing in px of sigma.
     """
-    b = radiance.shape[0]
+    return Defocus(camera, _kernel_fn(psf, radiance.shape[0]), mode, layer_spacing)(radiance, depth_m)
+
+
+def _kernel_fn(psf: PSFModel | Sequence[PSFModel], b: int):
     models = [psf] * b if isinstance(psf, PSFModel) else list(psf)
     if len(models) != b:
         raise InputError(f"need one PSF model per sample ({b}), got {len(models)}")
-    p1, p2 = camera.lens_powers_dpt
-    s1 = sigma_map(camera, depth_m, p1)
-    # frame 2's blur map differs by the constant of paper eq. 6
-    offsets = torch.tensor([[0.0, camera.sigma_difference_px * -1.0]], dtype=s1.dtype).expand(b, 2)
-    out = defocus_layered_multi(radiance, s1, offsets, layer_spacing=layer_spacing, kernel_fn=batch_kernel_fn(models),
-                                exact_planes=True, occlusion=(mode != "gather"))
-    return out[:, :, 0]
+    return batch_kernel_fn(models)
 
 
-def _keys_weights(t: torch.Tensor) -> torch.Tensor:
-    """Keys cubic-convolution weights (``a = -1/2``) of the taps at offsets -1, 0, 1, 2 for a
-    fractional position ``t`` in [0, 1): ``(n, 4)``. This kernel reproduces polynomials up
-    to degree 2, so a resampled image keeps its centroid exactly (PyTorch's bicubic uses
-    ``a = -3/4``, which shifts centroids of fractionally moved content by up to ~30 %)."""
-    t2, t3 = t * t, t * t * t
-    return torch.stack([(-t3 + 2 * t2 - t) / 2, (3 * t3 - 5 * t2 + 2) / 2, (-3 * t3 + 4 * t2 + t) / 2,
-                        (t3 - t2) / 2], dim=-1)
-
-
-def _resample_axis(x: torch.Tensor, pos: torch.Tensor, dim: int) -> torch.Tensor:
-    """Values of ``x`` at fractional source positions ``pos`` (px) along ``dim`` (Keys cubic,
-    reflected borders)."""
-    n = x.shape[dim]
-    i0 = torch.floor(pos)
-    w = _keys_weights((pos - i0).to(x.dtype))  # (m, 4)
-    out = None
-    for k in range(4):
-        idx = (i0.long() + (k - 1)).abs()  # reflect at 0 ...
-        idx = torch.where(idx > n - 1, 2 * (n - 1) - idx, idx).clamp(0, n - 1)  # ... and at n - 1
-        shape = [1] * x.ndim
-        shape[dim] = -1
-        term = x.index_select(dim, idx) * w[:, k].reshape(shape)
-        out = term if out is None else out + term
-    return out
-
-
-def _magnify_shift(img: torch.Tensor, scale: float, shift_y: float, shift_x: float) -> torch.Tensor:
-    """Content of ``img`` ``(..., H, W)`` magnified by ``scale`` about the centre and moved by
-    ``(shift_y, shift_x)`` px: output ``p`` samples the input at ``c + (p - c - shift) / scale``."""
-    h, w = img.shape[-2:]
-    cy, cx = (h - 1) / 2.0, (w - 1) / 2.0
-    py = cy + (torch.arange(h, dtype=torch.float64) - cy - shift_y) / scale
-    px = cx + (torch.arange(w, dtype=torch.float64) - cx - shift_x) / scale
-    return _resample_axis(_resample_axis(img, py, img.ndim - 2), px, img.ndim - 1)
-
-
-def warp_pair(frames: torch.Tensor, breathing: float, shift_y_px: float, shift_x_px: float) -> torch.Tensor:
-    """Apply focus breathing and misregistration to pairs ``(B, 2, H, W)``: frame 2 ends
-    magnified by ``1 + breathing`` and shifted by ``(shift_y_px, shift_x_px)`` relative to
-    frame 1, the warp split half and half between the frames (separable Keys cubic
-    resampling, reflected borders). Zero parameters return the input unchanged."""
-    if breathing == 0 and shift_y_px == 0 and shift_x_px == 0:
-        return frames
-    half = math.sqrt(1.0 + breathing)
-    m = 1.0 + breathing  # frame 2 = c + m (frame-1 position - c) + shift, exactly
-    f1 = _magnify_shift(frames[:, 0], 1.0 / half, -0.5 * shift_y_px / m, -0.5 * shift_x_px / m)
-    f2 = _magnify_shift(frames[:, 1], half, 0.5 * shift_y_px, 0.5 * shift_x_px)
-    return torch.stack([f1, f2], dim=1)
+#: Focus breathing and misregistration of pairs ``(B, 2, H, W)`` (:func:`tdfd.warp.misregister`).
+warp_pair = misregister
 
 
 class SynthBatchGenerator:
@@ -186,20 +135,20 @@ class SynthBatchGenerator:
             sparams = draw_sensor(g, cfg)
             wparams = draw_warp(g, cfg)
             mode = {"plane": "auto", "slanted": "gather", "smooth": "gather"}.get(scene.layout, "occlusion")
-            frames = render_frames(cam, scene.radiance, scene.depth, psf, mode, cfg.layer_spacing)
-            frames = warp_pair(frames, wparams["breathing"], wparams["shift_y_px"], wparams["shift_x_px"])
-            frames = frames.clamp_min(0.0)
-            frames[:, 1] *= sparams["frame_gain"]
             # auto-exposure on the sharp radiance: mean frame level ~ target_level
             mean_rad = max(det_mean(scene.radiance), 1e-6)
             exposure = sparams["target_level"] / (mean_rad * sparams["gain"])
             if cfg.noise:
-                sensor = SensorModel(full_well_e=sparams["full_well_e"], read_noise_e=sparams["read_noise_e"],
-                                     bits=sparams["bits"], black_level_dn=sparams["black_level_dn"],
-                                     gain=sparams["gain"], exposure=exposure, vignetting=sparams["vignetting"])
-                images = sensor(frames, generator=g)
+                sensor: torch.nn.Module = SensorModel(
+                    full_well_e=sparams["full_well_e"], read_noise_e=sparams["read_noise_e"], bits=sparams["bits"],
+                    black_level_dn=sparams["black_level_dn"], gain=sparams["gain"], exposure=exposure,
+                    vignetting=sparams["vignetting"])
             else:
-                images = (frames * (exposure * sparams["gain"])).clamp(0.0, 1.0)
+                sensor = IdealSensor(exposure, sparams["gain"])
+            forward = DFDForward(Defocus(cam, _kernel_fn(psf, 1), mode, cfg.layer_spacing), sensor)
+            images = forward(scene.radiance, scene.depth, breathing=wparams["breathing"],
+                             shift_y_px=wparams["shift_y_px"], shift_x_px=wparams["shift_x_px"],
+                             frame_gain=sparams["frame_gain"], generator=g)
             depth = scene.depth
             tdepth = tile_true_depth(depth, cfg.tile, cfg.stride, self.window)
         params = self._params(index, scene, pparams, sparams, wparams, exposure)

@@ -38,20 +38,12 @@ import torch
 from torch import nn
 
 import tdfd
+from tdfd.contract import CAMERA_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET, MODEL_KEY, OUTPUT_NAMES, VERSION_KEY
 from tdfd.errors import ModelError
 
 __all__ = ["INPUT_NAMES", "OUTPUT_NAMES", "METADATA_KEYS", "MIN_OPSET", "export_model", "onnx_metadata"]
 
 logger = logging.getLogger(__name__)
-
-#: Graph input names (``CONTRACT.md`` section 2).
-INPUT_NAMES = ("image_f1", "image_f2")
-#: Graph output names, in the order the model returns them.
-OUTPUT_NAMES = ("depth", "confidence", "depth_analytic")
-#: ``metadata_props`` keys the contract requires, each a JSON string.
-METADATA_KEYS = ("tdfd.camera", "tdfd.grid", "tdfd.version")
-#: Lowest ONNX opset the contract allows.
-MIN_OPSET = 18
 
 
 def _check_model(model: nn.Module) -> None:
@@ -74,14 +66,14 @@ def onnx_metadata(model: nn.Module) -> dict[str, str]:
     """
     _check_model(model)
     meta = {
-        "tdfd.camera": json.dumps(model.camera.to_dict()),
-        "tdfd.grid": json.dumps({"tile": int(model.tile), "stride": int(model.stride)}),
-        "tdfd.version": json.dumps(tdfd.__version__),
+        CAMERA_KEY: json.dumps(model.camera.to_dict()),
+        GRID_KEY: json.dumps({"tile": int(model.tile), "stride": int(model.stride)}),
+        VERSION_KEY: json.dumps(tdfd.__version__),
     }
     config = getattr(model, "config", None)
     if callable(config):
         try:
-            meta["tdfd.model"] = json.dumps(config(), sort_keys=True)
+            meta[MODEL_KEY] = json.dumps(config(), sort_keys=True)
         except (TypeError, ValueError) as exc:  # not JSON-serialisable: informational only
             logger.warning("model config not stored in the ONNX metadata: %s", exc)
     return meta

@@ -7,7 +7,7 @@ r"""Verify an exported ONNX model: checker, contract, and ONNX Runtime versus to
    ranks, symbolic batch/height/width, and the ``tdfd.*`` metadata (equal to the model's
    camera and grid when the model is given);
 3. parity: the file in ONNX Runtime against the torch model in eager mode on realistic
-   rendered pairs (:func:`realistic_pairs`: procedural ``1/f`` textures with edges, two
+   rendered pairs (:func:`realistic_pairs`: the forward model on library textures, two
    depth planes per sample, sensor noise) at several image sizes, including sizes that are
    no multiple of the stride, and several batch sizes. ``depth`` and ``depth_analytic``
    must agree within ``rtol`` (relative, default ``1e-4``) in every tile with confidence
@@ -33,12 +33,15 @@ from torch import nn
 
 from tdfd.camera import Camera
 from tdfd.errors import ModelError
+from tdfd.forward import Defocus, DFDForward, IdealSensor, PlanePairs
 from tdfd.grid import grid_shape
+from tdfd.sensor import SensorModel
 
-from .onnx_export import INPUT_NAMES, METADATA_KEYS, MIN_OPSET, OUTPUT_NAMES, _export_mode
+from tdfd.contract import CAMERA_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET, OUTPUT_NAMES
 
-__all__ = ["DEFAULT_SIZES", "DEFAULT_BATCHES", "ParityReport", "check_contract", "realistic_pairs",
-           "procedural_texture", "verify_onnx"]
+from .onnx_export import _export_mode
+
+__all__ = ["DEFAULT_SIZES", "DEFAULT_BATCHES", "ParityReport", "check_contract", "realistic_pairs", "verify_onnx"]
 
 logger = logging.getLogger(__name__)
 
@@ -49,77 +52,21 @@ DEFAULT_BATCHES: tuple[int, ...] = (1, 3)
 
 
 # ---------------------------------------------------------------------------- scenes
-def procedural_texture(batch: int, height: int, width: int, generator: torch.Generator) -> torch.Tensor:
-    """Natural-looking radiance ``(B, 1, H, W)`` in ``[0.05, 0.95]``.
-
-    Multi-octave value noise with a ``1/f`` amplitude spectrum (bilinear upsampling of
-    random grids whose amplitude halves with each octave) plus a few random rectangles
-    (sharp edges), normalised per sample.
-    """
-    img = torch.zeros(batch, 1, height, width, dtype=torch.float64)
-    size, amp = 4, 1.0
-    while size <= 2 * max(height, width):
-        g = torch.rand(batch, 1, size, size, generator=generator, dtype=torch.float64) - 0.5
-        img += amp * torch.nn.functional.interpolate(g, size=(height, width), mode="bilinear", align_corners=False)
-        size, amp = size * 2, amp * 0.6
-    for b in range(batch):
-        for _ in range(6):
-            y0, x0 = (int(torch.randint(0, n, (1,), generator=generator)) for n in (height, width))
-            dy, dx = (int(torch.randint(n // 10 + 1, n // 3 + 2, (1,), generator=generator)) for n in (height, width))
-            img[b, :, y0:y0 + dy, x0:x0 + dx] += float(torch.rand(1, generator=generator, dtype=torch.float64)) - 0.5
-    lo = img.amin(dim=(1, 2, 3), keepdim=True)
-    hi = img.amax(dim=(1, 2, 3), keepdim=True)
-    return (0.05 + 0.9 * (img - lo) / (hi - lo).clamp_min(1e-12)).float()
-
-
-def _texture(batch: int, height: int, width: int, generator: torch.Generator) -> torch.Tensor:
-    try:  # the library's texture generator, once it exists
-        from tdfd import textures  # type: ignore[attr-defined]
-    except ImportError:
-        return procedural_texture(batch, height, width, generator)
-    fn = getattr(textures, "procedural_texture", None) or getattr(textures, "texture", None)
-    if fn is None:
-        return procedural_texture(batch, height, width, generator)
-    try:
-        out = fn(batch, height, width, generator=generator)
-    except TypeError:
-        return procedural_texture(batch, height, width, generator)
-    out = torch.as_tensor(out, dtype=torch.float32).reshape(batch, 1, height, width)
-    return out.clamp(0.0, 1.0)
-
-
 def realistic_pairs(camera: Camera, batch: int, height: int, width: int, seed: int = 0,
                     noise: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """Rendered DFD pairs ``(image_f1, image_f2)``, each ``(B, 1, H, W)`` float32 in [0, 1].
 
-    Each sample is a textured scene of two fronto-parallel planes (random depths in the
-    camera's working range, split at a random column) rendered with
-    :func:`tdfd.optics.render_pair` (Gaussian PSF), with Poisson-Gaussian sensor noise
-    (``var = 1e-4 x + 1e-6``) and 12-bit quantisation when ``noise`` is set. The two
-    planes are rendered separately and composited, which is not exact at the step (no
-    occlusion blur) but cheap and adequate for a parity check.
+    The forward model's :class:`tdfd.forward.PlanePairs`: each sample is two fronto-parallel
+    planes (random depths in the camera's working range, split at a random column, occluding
+    at the step) textured by :func:`tdfd.textures.random_texture` (1/f fractal noise or dead
+    leaves with sharp edges), Gaussian PSF, and with ``noise`` the Poisson-Gaussian
+    :class:`tdfd.sensor.SensorModel` (10 000 e- full well, 10 e- read noise, 12 bits, no
+    black level); without, the noise-free irradiance clipped to [0, 1].
     """
-    from tdfd.optics import render_pair
-
-    g = torch.Generator().manual_seed(int(seed))
-    sharp = _texture(batch, height, width, g)
-    near, far = camera.depth_range_m
-    d = 1.0 / (1.0 / far + torch.rand(2, batch, generator=g, dtype=torch.float64) * (1.0 / near - 1.0 / far))
-    renders = []
-    for k in range(2):
-        depth = d[k].float().reshape(batch, 1, 1, 1).expand(batch, 1, height, width).contiguous()
-        renders.append(render_pair(camera, sharp, depth))
-    split = torch.randint(width // 4, 3 * width // 4 + 1, (batch, 1, 1, 1), generator=g)
-    mask = (torch.arange(width).reshape(1, 1, 1, width) >= split).float()
-    out = []
-    for i in range(2):
-        im = renders[0][i] * (1 - mask) + renders[1][i] * mask
-        if noise:
-            std = torch.sqrt(1e-4 * im.clamp_min(0) + 1e-6)
-            im = im + std * torch.randn(im.shape, generator=g)
-            im = torch.round(im.clamp(0.0, 1.0) * 4095.0) / 4095.0
-        out.append(im.clamp(0.0, 1.0).float().contiguous())
-    return out[0], out[1]
+    sensor = SensorModel(full_well_e=10000.0, read_noise_e=10.0, bits=12, black_level_dn=0.0) if noise \
+        else IdealSensor()
+    frames, _ = PlanePairs(camera, DFDForward(Defocus(camera), sensor)).sample(batch, height, width, seed)
+    return frames[:, 0:1].contiguous(), frames[:, 1:2].contiguous()
 
 
 # -------------------------------------------------------------------------- contract
@@ -174,15 +121,15 @@ def check_contract(proto: onnx.ModelProto, model: nn.Module | None = None) -> di
         except json.JSONDecodeError as exc:
             raise ModelError(f"metadata {key!r} is not JSON: {exc}") from exc
     try:
-        camera = Camera.from_dict(parsed["tdfd.camera"])  # type: ignore[arg-type]
+        camera = Camera.from_dict(parsed[CAMERA_KEY])  # type: ignore[arg-type]
     except Exception as exc:
         raise ModelError(f"metadata 'tdfd.camera' is not a valid camera: {exc}") from exc
-    grid = parsed["tdfd.grid"]
+    grid = parsed[GRID_KEY]
     if not isinstance(grid, dict) or sorted(grid) != ["stride", "tile"]:
         raise ModelError(f"metadata 'tdfd.grid' must be {{'tile', 'stride'}}, got {grid!r}")
     if model is not None:
-        if parsed["tdfd.camera"] != model.camera.to_dict():
-            raise ModelError(f"metadata camera {parsed['tdfd.camera']} differs from the model's {model.camera.to_dict()}")
+        if parsed[CAMERA_KEY] != model.camera.to_dict():
+            raise ModelError(f"metadata camera {parsed[CAMERA_KEY]} differs from the model's {model.camera.to_dict()}")
         if (grid["tile"], grid["stride"]) != (int(model.tile), int(model.stride)):
             raise ModelError(f"metadata grid {grid} differs from the model's tile={model.tile}, stride={model.stride}")
     del camera

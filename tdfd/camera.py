@@ -29,9 +29,11 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from .errors import CameraError
+import numpy as np
 
-__all__ = ["Camera", "PRESETS"]
+from .errors import CameraError, RangeError
+
+__all__ = ["Camera", "PRESETS", "in_focus_power_dpt"]
 
 
 def _positive(name: str, value: float) -> float:
@@ -144,10 +146,9 @@ class Camera:
         """``(F1, F2)`` in metres at the two capture powers."""
         return tuple(self.focal_length_m(p) for p in self.lens_powers_dpt)  # type: ignore[return-value]
 
-    def in_focus_power_dpt(self, depth_m: float) -> float:
-        """ECVFL power that focuses an object at ``depth_m``: ``1/d_o + 1/d_s - 1/f0``."""
-        d = _positive("depth_m", depth_m)
-        return 1.0 / d + 1.0 / self.sensor_distance_m - self.fixed_power_dpt
+    def in_focus_power_dpt(self, depth_m: float | np.ndarray) -> float | np.ndarray:
+        """ECVFL power that focuses an object at ``depth_m``: see :func:`in_focus_power_dpt`."""
+        return in_focus_power_dpt(self, depth_m)
 
     def focus_distance_m(self, ecvfl_power_dpt: float) -> float:
         """Object distance in focus at ECVFL power ``P_e`` (``inf`` if none)."""
@@ -216,6 +217,34 @@ class Camera:
     def replace(self, **changes: Any) -> "Camera":
         """A copy with some fields changed (validated again)."""
         return dataclasses.replace(self, **changes)
+
+
+def in_focus_power_dpt(camera: Camera, depth_m: float | np.ndarray) -> float | np.ndarray:
+    """ECVFL power (dioptres) that focuses an object at ``depth_m`` metres (the one formula).
+
+    ``P_e = 1/d_o + 1/d_s - 1/f0`` (``CONTRACT.md`` section 1), element-wise for arrays.
+    Defined behaviour at the edges, the same for every caller (runtime, autofocus, bench):
+
+    * ``depth_m = +inf`` gives the power that focuses at infinity, ``1/d_s - 1/f0`` (an
+      aggregate of inverse depths may legitimately be 0);
+    * a depth outside the camera's working range is allowed (the formula holds there; the
+      lens's own power limits are the driver's business);
+    * ``depth_m <= 0``, NaN or ``-inf`` raise :class:`~tdfd.errors.RangeError`.
+
+    Returns:
+        A float for a scalar, else a float64 array of the input's shape.
+
+    Raises:
+        RangeError: a depth that is not ``> 0`` (NaN, ``-inf``, zero or negative).
+    """
+    try:
+        d = np.asarray(depth_m, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise RangeError(f"depth must be a number of metres, got {depth_m!r}") from exc
+    if np.any(np.isnan(d)) or np.any(d <= 0):
+        raise RangeError(f"depth must be > 0 metres (or +inf for focus at infinity), got {depth_m!r}")
+    p = 1.0 / d + 1.0 / camera.sensor_distance_m - camera.fixed_power_dpt
+    return float(p) if p.ndim == 0 else p
 
 
 def _reference() -> Camera:

@@ -37,8 +37,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .camera import Camera
-from .errors import DTypeError, InputError, ModelError, NonFiniteError, RangeError, ShapeError
+from .camera import Camera, in_focus_power_dpt
+from .contract import (CAMERA_KEY, DEFAULT_MODEL_ENV, DEFAULT_MODEL_RELPATH, GRID_KEY, INPUT_NAMES, METADATA_KEYS,
+                       OUTPUT_NAMES, PACKAGED_MODEL_RELPATH, VERSION_KEY)
+from .errors import DTypeError, InputError, ModelError, ShapeError
+from .frames import raw_to_linear
 from .pair_check import pair_problem
 
 __all__ = [
@@ -60,12 +63,6 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: Environment variable naming the default model file.
-DEFAULT_MODEL_ENV = "TDFD_MODEL"
-#: Model inputs and outputs (``CONTRACT.md`` section 2).
-INPUT_NAMES = ("image_f1", "image_f2")
-OUTPUT_NAMES = ("depth", "confidence", "depth_analytic")
-_FLOAT_TOLERANCE = 1e-6  # float inputs may exceed [0, 1] by rounding only
 #: Confidence at which a cell counts as valid by default. For the shipped reference model
 #: (confidence ``1 / (1 + (b / 0.01)^2)``, ``b`` the predicted Laplace scale of the relative
 #: error) 0.1 means ``b`` of about 3 %; on held-out planes its tiles above 0.1 have a median
@@ -75,7 +72,7 @@ DEFAULT_CONFIDENCE_THRESHOLD = 0.1
 
 #: The model shipped inside the package (package data; in a source checkout a link to
 #: ``models/reference.onnx``).
-SHIPPED_MODEL = Path(__file__).resolve().parent / "assets" / "reference.onnx"
+SHIPPED_MODEL = Path(__file__).resolve().parent / PACKAGED_MODEL_RELPATH
 
 
 def default_model_path() -> Path:
@@ -95,27 +92,12 @@ def default_model_path() -> Path:
         if not p.is_file():
             raise ModelError(f"${DEFAULT_MODEL_ENV} names {p}, which does not exist")
         return p
-    candidates = [SHIPPED_MODEL, Path.cwd() / "models" / "reference.onnx"]
+    candidates = [SHIPPED_MODEL, Path.cwd() / DEFAULT_MODEL_RELPATH]
     for p in candidates:
         if p.is_file():
             return p.resolve()
     raise ModelError("no model found: name one with --model PATH (Python: model_path=) or $TDFD_MODEL (looked for "
                      + ", ".join(str(c) for c in candidates) + ")")
-
-
-def in_focus_power_dpt(camera: Camera, depth_m: float | np.ndarray) -> float | np.ndarray:
-    """ECVFL power (dioptres) that focuses an object at ``depth_m`` metres.
-
-    ``P_e = 1/d_o + 1/d_s - 1/f0`` (``CONTRACT.md`` section 1), element-wise for arrays.
-
-    Raises:
-        RangeError: a depth that is not finite and positive.
-    """
-    d = np.asarray(depth_m, dtype=np.float64)
-    if not np.all(np.isfinite(d)) or np.any(d <= 0):
-        raise RangeError(f"depth must be finite and > 0 metres, got {depth_m!r}")
-    p = 1.0 / d + 1.0 / camera.sensor_distance_m - 1.0 / camera.fixed_focal_length_m
-    return float(p) if p.ndim == 0 else p
 
 
 def tile_centres(height: int, width: int, tile: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
@@ -269,30 +251,7 @@ def _as_images(name: str, image: Any, white_level: float | None) -> tuple[np.nda
         raise ShapeError(f"{name} must be (H, W), (1, H, W) or (N, 1, H, W) single-channel, got shape {shape}")
     if arr.size == 0:
         raise ShapeError(f"{name} is empty (shape {shape})")
-    dt = image.dtype
-    if dt in (np.uint8, np.uint16):
-        level = float(np.iinfo(dt).max) if white_level is None else float(white_level)
-        if not math.isfinite(level) or level <= 0:
-            raise RangeError(f"white_level must be finite and > 0, got {white_level!r}")
-        hi = int(arr.max())
-        if hi > level:
-            raise RangeError(f"{name} has values up to {hi}, above the white level {level:g}")
-        return (arr.astype(np.float32) / np.float32(level)), shape
-    if dt in (np.float16, np.float32, np.float64):
-        out = arr.astype(np.float32, copy=False)
-        if white_level is not None:
-            level = float(white_level)
-            if not math.isfinite(level) or level <= 0:
-                raise RangeError(f"white_level must be finite and > 0, got {white_level!r}")
-            out = out / np.float32(level)
-        if not np.isfinite(out).all():
-            raise NonFiniteError(f"{name} contains NaN or inf")
-        lo, hi = float(out.min()), float(out.max())
-        if lo < -_FLOAT_TOLERANCE or hi > 1.0 + _FLOAT_TOLERANCE:
-            raise RangeError(f"{name} has values in [{lo:.4g}, {hi:.4g}]; float images must be linear intensity "
-                             f"in [0, 1] (divide raw values by the white level)")
-        return np.clip(out, 0.0, 1.0), shape
-    raise DTypeError(f"{name} has dtype {dt}; expected uint8, uint16 (scaled by the white level) or float in [0, 1]")
+    return raw_to_linear(arr, white_level, name), shape
 
 
 def check_pairs(image_f1: np.ndarray, image_f2: np.ndarray,
@@ -394,21 +353,21 @@ class DepthRuntime:
                 self.metadata[key] = json.loads(value)
             except (json.JSONDecodeError, TypeError):
                 self.metadata[key] = value
-        for key in ("tdfd.camera", "tdfd.grid", "tdfd.version"):
+        for key in METADATA_KEYS:
             if key not in self.metadata:
                 raise ModelError(f"{path} lacks the {key!r} metadata; export it with `python -m export`")
         try:
-            self.camera = Camera.from_dict(self.metadata["tdfd.camera"], name=path.stem)
+            self.camera = Camera.from_dict(self.metadata[CAMERA_KEY], name=path.stem)
         except Exception as exc:
             raise ModelError(f"{path}: invalid 'tdfd.camera' metadata: {exc}") from exc
-        grid = self.metadata["tdfd.grid"]
+        grid = self.metadata[GRID_KEY]
         try:
             self.tile, self.stride = int(grid["tile"]), int(grid["stride"])
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelError(f"{path}: invalid 'tdfd.grid' metadata {grid!r}") from exc
         if self.tile < 1 or not 1 <= self.stride <= self.tile:
             raise ModelError(f"{path}: invalid tile grid tile={self.tile}, stride={self.stride}")
-        self.version = str(self.metadata["tdfd.version"])
+        self.version = str(self.metadata[VERSION_KEY])
 
     def __repr__(self) -> str:
         return f"DepthRuntime({str(self.path)!r}, tile={self.tile}, stride={self.stride}, threads={self.threads})"

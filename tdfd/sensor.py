@@ -12,10 +12,10 @@ machine-vision camera delivers, in this order:
    ``full_well_e``. Poisson is sampled exactly where ``lambda < exact_poisson_below``
    electrons and by its normal approximation ``N(lambda, lambda)`` above (the two agree in
    mean and variance; the approximation's skewness error is below ``1 / sqrt(lambda)``).
-4. **Read noise**: ``+ N(0, read_noise_e^2)`` electrons (input-referred). When no pixel can
-   reach the full well (``lambda + 8 sqrt(lambda) < full_well_e`` everywhere), shot and read
-   noise of the normal-approximated pixels are drawn together as ``N(lambda, lambda + r^2)``
-   (the same distribution, one draw).
+4. **Read noise**: ``+ N(0, read_noise_e^2)`` electrons (input-referred). Steps 3 and 4 are
+   :func:`poisson_gaussian`, the one noise draw of tdfd (when no pixel can reach the full
+   well, shot and read noise of the normal-approximated pixels are one draw
+   ``N(lambda, lambda + r^2)``, the same distribution).
 5. **Gain and black level**: ``DN = black_level_dn + gain * e * (white - black) / full_well_e``
    with ``white = 2^bits - 1``; at ``gain = 1`` the full well maps to the white level, a
    higher (analog) gain brightens and clips the ADC before the well is full.
@@ -44,6 +44,7 @@ from __future__ import annotations
 
 from typing import Union
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -122,21 +123,40 @@ def shot_noise(electrons: torch.Tensor, generator: torch.Generator | None = None
 
 
 def poisson_gaussian(electrons: torch.Tensor, read_noise_e: Param, generator: torch.Generator | None = None,
-                     exact_poisson_below: float = 64.0) -> torch.Tensor:
-    """Shot noise (:func:`shot_noise`) plus Gaussian read noise on a mean electron count.
+                     exact_poisson_below: float = 64.0, full_well_e: Param | None = None) -> torch.Tensor:
+    """Shot noise, full-well saturation and Gaussian read noise on a mean electron count.
+
+    The one noise draw of tdfd (:class:`SensorModel` calls it). The order is physical: shot
+    noise (:func:`shot_noise`), the well clips at ``full_well_e``, then read noise adds.
+    When no pixel can reach the full well (``lambda + 8 sqrt(lambda) < full_well_e``
+    everywhere, or no ``full_well_e``), shot and read noise of the normal-approximated
+    pixels are drawn together as ``N(lambda, lambda + r^2)`` (the same distribution, one
+    draw); pixels below ``exact_poisson_below`` get an exact Poisson draw plus read noise.
 
     Args:
         electrons: ``(B, C, H, W)`` expected electrons ``lambda >= 0``.
         read_noise_e: read noise, electrons RMS (float or ``(B,)``).
         generator: random source.
         exact_poisson_below: see :func:`shot_noise`.
+        full_well_e: well capacity in electrons (float or ``(B,)``); ``None``: no saturation.
 
     Returns:
         Noisy electron counts (float, may be negative through read noise).
     """
-    e = shot_noise(electrons, generator, exact_poisson_below)
-    r = _per_sample(read_noise_e, e, "read_noise_e")
-    return e + r * torch.randn(e.shape, generator=generator, dtype=e.dtype, device=e.device)
+    lam = electrons.clamp_min(0.0)
+    rn = _per_sample(read_noise_e, lam, "read_noise_e")
+    fw = None if full_well_e is None else _per_sample(full_well_e, lam, "full_well_e")
+    if fw is None or bool((lam + 8.0 * torch.sqrt(lam) < fw).all()):
+        z = torch.randn(lam.shape, generator=generator, dtype=lam.dtype, device=lam.device)
+        e = lam + torch.sqrt(lam + rn * rn) * z
+        low = lam < exact_poisson_below
+        if bool(low.any()):
+            exact = torch.poisson(lam[low], generator=generator) + (rn.expand_as(lam)[low] * z[low])
+            e = e.masked_scatter(low, exact)
+        return e
+    e = shot_noise(lam, generator, exact_poisson_below)
+    e = torch.minimum(e, fw)  # the well overflows: saturation
+    return e + rn * torch.randn(e.shape, generator=generator, dtype=e.dtype, device=e.device)
 
 
 def quantize(dn: torch.Tensor, bits: Param) -> torch.Tensor:
@@ -215,20 +235,7 @@ class SensorModel(nn.Module):
         irr = vignetting(x, self.vignetting) if not _is_zero(self.vignetting) else x
         lam = irr.clamp_min(0.0) * p["exposure"] * p["full_well_e"]
         if self.noise:
-            fw, rn = p["full_well_e"], p["read_noise_e"]
-            if bool((lam + 8.0 * torch.sqrt(lam) < fw).all()):
-                # no pixel can fill the well: shot and read noise add as one normal draw,
-                # N(lambda, lambda + r^2), except where Poisson is drawn exactly
-                z = torch.randn(lam.shape, generator=generator, dtype=lam.dtype, device=lam.device)
-                e = lam + torch.sqrt(lam + rn * rn) * z
-                low = lam < self.exact_poisson_below
-                if bool(low.any()):
-                    exact = torch.poisson(lam[low], generator=generator) + (rn.expand_as(lam)[low] * z[low])
-                    e = e.masked_scatter(low, exact)
-            else:
-                e = shot_noise(lam, generator, self.exact_poisson_below)
-                e = torch.minimum(e, fw)  # the well overflows: saturation
-                e = e + rn * torch.randn(e.shape, generator=generator, dtype=e.dtype, device=e.device)
+            e = poisson_gaussian(lam, p["read_noise_e"], generator, self.exact_poisson_below, p["full_well_e"])
         else:
             e = torch.minimum(lam, p["full_well_e"])
         dn = p["black_level_dn"] + p["dn_per_e"] * e
@@ -255,6 +262,17 @@ class SensorModel(nn.Module):
         if self.quantize:
             var_dn = var_dn + 1.0 / 12.0
         return (var_dn / p["white"] ** 2).reshape(x.shape)
+
+    def apply_numpy(self, image: np.ndarray, seed: int) -> np.ndarray:
+        """:meth:`forward` for numpy callers: ``(H, W)`` or ``(B, C, H, W)`` irradiance in,
+        the noisy normalised frame of the same shape out (float32), seeded by ``seed``."""
+        a = np.asarray(image)
+        if a.ndim not in (2, 4):
+            raise ShapeError(f"image must be (H, W) or (B, C, H, W), got shape {a.shape}")
+        x = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+        with torch.no_grad():
+            y = self(x[None, None] if a.ndim == 2 else x, generator=torch.Generator().manual_seed(int(seed)))
+        return (y[0, 0] if a.ndim == 2 else y).numpy().astype(np.float32)
 
     def extra_repr(self) -> str:
         return (f"full_well_e={self.full_well_e}, read_noise_e={self.read_noise_e}, bits={self.bits}, "

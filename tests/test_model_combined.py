@@ -121,79 +121,15 @@ def test_two_context_sides_add_two_pooled_fits(tmp_path):
     torch.testing.assert_close(loaded(i1, i2)[1], model(i1, i2)[1])
 
 
-def test_coarse_windows_are_centred_on_the_fine_tiles():
-    """coarse=[1]: each fine tile gets the measurement of the 2x-decimated window twice its
-    side and centred on it (here: tile 32, stride 16, so a 64-px window at 16-px steps)."""
-    from tdfd.model import coarse_measurements
-
-    model = DFDModel(REF, tile=32, stride=16, hidden=8, blocks=1, coarse=1)
-    i1, i2 = _pair(1, 128, 160, seed=4)
-    meas = model.analytic.measure(i1, i2)
-    coarse = coarse_measurements(model.coarse_analytic, i1, i2, meas[2])
-    assert all(v.shape[-2:] == meas[0].shape[-2:] for v in coarse)  # the fine grid (7, 9)
-    # interior tile (2, 3) covers rows 32..64, cols 48..80; its window rows 24..72, cols 40..88
-    est = FourierRatioDFD(REF, tile=32, stride=32, mu=model.analytic.mu / 2, validate=False)
-    crop = lambda im: torch.nn.functional.avg_pool2d(im[..., 16:80, 32:96], 2)  # noqa: E731
-    direct = est.measure(crop(i1), crop(i2))
-    # ring powers agree to 0.3 % (the crop's pre-whitening zeroes its own 1-px border), while
-    # a window off by 2 px differs by 6-19 %; the windowed means agree exactly
-    for got, want in zip(coarse[:2], direct[:2]):
-        torch.testing.assert_close(got[..., 2, 3], want[..., 0, 0], rtol=1e-2, atol=0)
-    for got, want in zip(coarse[3:], direct[3:]):
-        torch.testing.assert_close(got[..., 2, 3], want[..., 0, 0], rtol=1e-5, atol=1e-7)
-    # the noise level: the fine tiles' 3x3 mean, divided by 4 (2x2 averaging of white noise)
-    torch.testing.assert_close(coarse[2][..., 2, 3], meas[2][..., 1:4, 2:5].mean((-2, -1)) / 4)
-
-
-def test_coarse_fits_features_and_persistence(tmp_path):
-    """coarse=[1, 3] adds two fits of the decimated windows (alone and 3x3-pooled); on a
-    uniform-depth Gaussian pair they recover sigma1^2 - sigma2^2 (in original pixels) at
-    least as well as the 32-px tiles, and the pooled one predicts a smaller error."""
-    from tdfd.model.combined import _square_difference_scale
-    from tdfd.optics.thin_lens import camera_sigmas
-
-    torch.manual_seed(5)
-    model = DFDModel(REF, tile=64, stride=32, hidden=8, blocks=1, context=3, coarse=[3, 1])
-    assert model.coarse_sides == (1, 3)
-    rings = model.analytic.num_rings
-    depth = 0.32
-    i1, i2 = _pair(1, 256, 320, depth=depth, seed=6)
-    feats = model.analyse(i1, i2).features
-    assert feats.shape[1] == num_features(rings, 3, [1, 3]) == num_features(rings, 3) + 2 * (2 * rings + 3) + 2 * rings
-    assert bool(torch.isfinite(feats).all())
-    s1, s2 = camera_sigmas(REF, depth, model.analytic.mu)
-    truth = (float(s1) ** 2 - float(s2) ** 2) / _square_difference_scale(REF, model.analytic.mu)
-    base = num_features(rings, 3)
-    d_tile = feats[:, 5 * rings + 1].median()
-    d_c1, d_c3 = feats[:, base + 2 * rings].median(), feats[:, base + (2 * rings + 3) + 2 * rings].median()
-    assert abs(float(d_c1) - truth) < 0.05 * abs(truth) and abs(float(d_c3) - truth) < 0.05 * abs(truth)
-    assert abs(float(d_c3) - truth) <= abs(float(d_tile) - truth) + 1e-3
-    rel_c1, rel_c3 = feats[:, base + 2 * rings + 1], feats[:, base + (2 * rings + 3) + 2 * rings + 1]
-    assert float(rel_c3.mean()) < float(rel_c1.mean())
-    # without coarse fits the first channels are the same features
-    plain = DFDModel(REF, tile=64, stride=32, hidden=8, blocks=1, context=3)
-    torch.testing.assert_close(plain.analyse(i1, i2).features, feats[:, :base])
-    model.save(tmp_path / "c")
-    assert json.loads((tmp_path / "c.json").read_text())["coarse"] == [1, 3]
-    loaded = DFDModel.load(tmp_path / "c")
-    assert loaded.coarse_sides == (1, 3) and loaded.analytic_matches is True
-    torch.testing.assert_close(loaded(i1, i2)[0], model(i1, i2)[0])
-    # one tile is enough (the decimated frames are reflect-padded), odd sizes too
-    small = DFDModel(REF, tile=32, stride=16, hidden=8, blocks=1, coarse=[1, 3])
-    for h, w in ((32, 32), (47, 61)):
-        out = small(*_pair(1, h, w))
-        assert out[0].shape[-2:] == ((h - 32) // 16 + 1, (w - 32) // 16 + 1) and bool(torch.isfinite(out[0]).all())
-
-
-@pytest.mark.parametrize("bad", [0, 2, [1, 1], 2.5, True, ["1"]])
-def test_bad_coarse_sides_are_rejected(bad):
+def test_a_description_with_the_removed_coarse_option_is_refused(tmp_path):
+    model = DFDModel(REF, tile=32, stride=16, hidden=8, blocks=1)
+    model.save(tmp_path / "m")
+    meta = tmp_path / "m.json"
+    meta.write_text(json.dumps({**json.loads(meta.read_text()), "coarse": [1, 3]}))
+    with pytest.raises(ModelError, match="coarse fits"):
+        DFDModel.load(tmp_path / "m")
     with pytest.raises(InputError, match="coarse"):
-        DFDModel(REF, tile=32, stride=16, coarse=bad)
-
-
-def test_coarse_needs_stride_half_the_tile():
-    with pytest.raises(InputError, match="stride = tile / 2"):
-        DFDModel(REF, tile=32, stride=32, coarse=1)
+        DFDModel(REF, tile=32, stride=16, coarse=[1])
 
 
 def test_gradients_flow_through_every_parameter():

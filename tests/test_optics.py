@@ -1,7 +1,5 @@
 """Thin-lens geometry, PSFs and rendering: physics identities and gradients."""
 
-import math
-
 import pytest
 import torch
 
@@ -10,7 +8,8 @@ from tdfd.errors import InputError, NonFiniteError, ShapeError
 from tdfd.optics import (blur_radius, camera_sigmas, defocus_layered, defocus_uniform, depth_from_sigma,
                          depth_from_square_difference, depth_from_square_difference_sensor_varying,
                          gaussian_otf, gaussian_psf, kernel_size_for, pillbox_otf, pillbox_psf,
-                         power_exponential_psf, psf_kernel, psf_second_moment, render_at_power, render_pair,
+                         gaussian_psf_1d, power_exponential_psf, psf_kernel, psf_second_moment, render_at_power,
+                         render_pair, sampled_psf,
                          sensor_varying_sigmas, sigma_difference, sigma_from_depth, sigma_map)
 
 REF = Camera.preset("reference")
@@ -104,6 +103,35 @@ def test_psf_rms_radius_matches_sigma(shape):
     k = psf_kernel(s, shape, kernel_size_for(4.0, "gaussian"))
     # pixel integration adds 1/12 px^2
     assert torch.allclose(psf_second_moment(k), s ** 2 + 1 / 12, rtol=0.03)
+
+
+def test_one_gaussian_and_one_kernel_size_rule():
+    s = torch.tensor([0.0, 0.7, 3.0], dtype=torch.float64)
+    k1 = gaussian_psf_1d(s, 15)
+    assert torch.equal(k1[..., :, None] * k1[..., None, :], gaussian_psf(s, 15))
+    for sigma in (0.5, 2.0, 6.0):  # the rule keeps > 99.9 % of a Gaussian's energy per axis
+        size = kernel_size_for(sigma)
+        wide = gaussian_psf_1d(torch.tensor([sigma], dtype=torch.float64), 4 * size + 1)[0]
+        c = wide.numel() // 2
+        assert float(wide[c - size // 2: c + size // 2 + 1].sum()) > 0.999
+
+
+@pytest.mark.parametrize("beta", [3.0, 8.0])
+@pytest.mark.parametrize("supersample", [None, 1, 3, 5])
+def test_sampled_power_exponential_keeps_its_rms_radius(beta, supersample):
+    s = torch.tensor([0.4, 1.2, 2.0, 4.5], dtype=torch.float64)
+    k = power_exponential_psf(s, beta, kernel_size_for(4.5), supersample=supersample)
+    assert torch.allclose(k.sum((-1, -2)), torch.ones(4, dtype=torch.float64), atol=1e-12)
+    # box integration (or its 1/12 px^2 stand-in at pixel centres) adds the pixel's variance;
+    # a sub-pixel PSF is coarsely sampled (on the default 3x grid within 0.05 px^2; pixel
+    # centres alone are for blurs above 1.5 px)
+    assert torch.allclose(psf_second_moment(k)[1:], s[1:] ** 2 + 1 / 12, rtol=0.04)
+    if supersample != 1:
+        assert torch.allclose(psf_second_moment(k), s ** 2 + 1 / 12, atol=0.05)
+    # a stretched metric passed to sampled_psf widens the kernel along x only
+    wide = sampled_psf(s, beta, kernel_size_for(9.0), 3, radius2=lambda yy, xx: ((xx / 2) ** 2 + yy ** 2)[None].expand(4, -1, -1))
+    assert torch.allclose(psf_second_moment(wide)[1:], 4 * s[1:] ** 2 + 1 / 12, rtol=0.06)
+    assert torch.allclose(psf_second_moment(wide.transpose(-1, -2))[1:], s[1:] ** 2 + 1 / 12, rtol=0.06)
 
 
 def test_psf_shape_errors():

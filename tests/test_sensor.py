@@ -91,3 +91,23 @@ def test_determinism_and_errors():
         SensorModel(gain=torch.ones(3))(torch.rand(2, 1, 4, 4))
     assert torch.equal(quantize(torch.tensor([-3.0, 2.4, 300.0]).reshape(1, 1, 1, 3), 8).flatten(),
                        torch.tensor([0.0, 2.0, 255.0]))
+
+
+def test_one_noise_draw_saturates_before_read_noise():
+    lam = torch.full((1, 1, 200, 200), 5000.0, dtype=torch.float64)
+    e = poisson_gaussian(lam, 4.0, _g(2), full_well_e=4000.0)  # the well clips, then read noise adds
+    assert float(e.mean()) == pytest.approx(4000.0, abs=0.1) and float(e.std()) == pytest.approx(4.0, rel=0.03)
+    e = poisson_gaussian(torch.full((1, 1, 200, 200), 900.0, dtype=torch.float64), 4.0, _g(3), full_well_e=1e5)
+    assert float(e.var()) == pytest.approx(916.0, rel=0.03)
+
+
+def test_numpy_callers_get_the_same_frames():
+    import numpy as np
+
+    sensor = SensorModel(full_well_e=5000.0, read_noise_e=2.0, bits=10, black_level_dn=16)
+    x = torch.rand(48, 64, generator=_g(5))
+    got = sensor.apply_numpy(x.numpy(), seed=9)
+    assert got.dtype == np.float32 and got.shape == (48, 64)
+    assert np.array_equal(got, sensor(x[None, None], generator=_g(9))[0, 0].numpy())
+    with pytest.raises(ShapeError):
+        sensor.apply_numpy(np.zeros((2, 3, 4)), seed=0)

@@ -34,14 +34,6 @@ def test_context_accepts_one_side_or_a_list(tmp_path):
     assert load_config(None).model.context == []
 
 
-def test_coarse_sides_reach_the_model():
-    from training.data import build_model
-
-    cfg = load_config(None, ["model.coarse=[5, 1]", "model.hidden=4", "model.blocks=1"])
-    assert cfg.model.coarse == [5, 1] and build_model(cfg.model).coarse_sides == (1, 5)
-    assert load_config(None).model.coarse == []
-
-
 def test_json_file_round_trip(tmp_path):
     cfg = load_config(None, ["seed=7"])
     f = tmp_path / "c.json"
@@ -66,18 +58,12 @@ def test_json_file_round_trip(tmp_path):
     ("model.context=[3, 3]", "model.context"),
     ("model.context=[3, x]", "expected a list"),
     ("model.context=[3.5]", "expected int"),
-    ("model.coarse=[2]", "model.coarse"),
-    ("model.coarse=[1, 1]", "model.coarse"),
+    ("model.coarse=[1]", "coarse"),  # the removed experimental option is an unknown key
 ])
 def test_bad_overrides_raise_typed_errors(override, match):
     with pytest.raises(ConfigError, match=match) as info:
         load_config(None, [override])
     assert isinstance(info.value, InputError) and isinstance(info.value, ValueError)
-
-
-def test_coarse_needs_stride_half_the_tile():
-    with pytest.raises(ConfigError, match="stride = tile / 2"):
-        load_config(None, ["model.coarse=[1]", "model.stride=64"])
 
 
 def test_bad_files(tmp_path):

@@ -7,14 +7,16 @@ training pipeline can be tested quickly and independently of the real generator.
 
 from __future__ import annotations
 
-import math
-
 import torch
-import torch.nn.functional as F
 
 from tdfd import Camera
+from tdfd.forward import Defocus, DFDForward
 from tdfd.grid import tile_true_depth
-from tdfd.optics import render_pair
+from tdfd.sensor import SensorModel
+from tdfd.textures import fractal
+
+#: Poisson-Gaussian noise of a 4000 e- well with 4 e- read noise, not quantised.
+SENSOR = SensorModel(full_well_e=4000.0, read_noise_e=4.0, bits=16, black_level_dn=0.0, quantize=False)
 
 
 class StandinDataset(torch.utils.data.Dataset):
@@ -33,11 +35,8 @@ class StandinDataset(torch.utils.data.Dataset):
     def _one(self, index: int) -> dict:
         g = torch.Generator().manual_seed(self.seed * 1_000_003 + int(index))
         h, w = self.size
-        tex = torch.zeros(1, 1, h, w)
-        for octave in (2, 4, 8, 16):
-            n = torch.randn(1, 1, h // octave + 2, w // octave + 2, generator=g)
-            tex = tex + F.interpolate(n, size=(h, w), mode="bilinear", align_corners=False) * math.sqrt(octave)
-        tex = tex / tex.std()
+        tex = fractal((h, w), g, 1, beta=2.0)  # the library's 1/f texture in [0, 1]
+        tex = (tex - tex.mean()) / tex.std()
         flat = float(torch.rand((), generator=g)) < self.textureless_fraction
         contrast = 0.002 if flat else 0.05 + 0.2 * float(torch.rand((), generator=g))
         sharp = (0.4 + contrast * tex).clamp(0.0, 1.0)
@@ -45,12 +44,8 @@ class StandinDataset(torch.utils.data.Dataset):
         q = 1.0 / far + (1.0 / near - 1.0 / far) * float(torch.rand((), generator=g))
         depth = torch.full((1, 1, h, w), 1.0 / q)
         shape = ["gaussian", "pillbox", 4.0][int(torch.randint(3, (), generator=g))]
-        i1, i2 = render_pair(self.camera, sharp, depth, shape=shape)
-        full_well = 4000.0
-        noisy = []
-        for im in (i1, i2):
-            std = torch.sqrt(im.clamp_min(0) / full_well + 1e-6)
-            noisy.append((im + std * torch.randn(im.shape, generator=g)).clamp(0.0, 1.0))
+        frames = DFDForward(Defocus(self.camera, psf=shape), SENSOR)(sharp, depth, generator=g)
+        noisy = [frames[:, 0:1], frames[:, 1:2]]
         return {"image_f1": noisy[0][0], "image_f2": noisy[1][0], "depth": depth[0],
                 "tile_depth": tile_true_depth(depth, self.tile, self.stride)[0],
                 "params": {"depth_m": 1.0 / q, "psf": str(shape), "textureless": flat}}

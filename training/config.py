@@ -83,9 +83,6 @@ class ModelConfig:
     #: sides (odd, in tiles) of the neighbourhoods whose pooled fits are extra features
     #: (a number or a list; [] or 1: none)
     context: list[int] = field(default_factory=list)
-    #: sides (odd, in tiles; 1 = the window alone) of the neighbourhoods whose coarse fits
-    #: (2x-decimated windows of twice the tile's side) are extra features ([]: none)
-    coarse: list[int] = field(default_factory=list)
 
 
 @dataclass
@@ -374,13 +371,9 @@ def validate_config(cfg: TrainConfig) -> None:
     for ok, msg in checks:
         if not ok:
             raise ConfigError(msg)
-    from tdfd.model import coarse_sizes, context_sizes  # the model's own rules for its sides
+    from tdfd.model import context_sizes  # the model's own rule for its sides
 
     try:
         context_sizes(cfg.model.context)
     except InputError as exc:
         raise ConfigError(f"model.context: {exc}") from exc
-    try:
-        coarse_sizes(cfg.model.coarse, cfg.model.tile, cfg.model.stride)
-    except InputError as exc:
-        raise ConfigError(f"model.coarse: {exc}") from exc

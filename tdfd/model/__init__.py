@@ -4,9 +4,8 @@
 export turns into ONNX.
 """
 
-from .combined import (MODEL_FORMAT, DFDModel, RefinedResult, coarse_measurements, coarse_sizes, context_sizes,
-                       num_features, pool_measurements, tile_features)
+from .combined import MODEL_FORMAT, DFDModel, RefinedResult, context_sizes, num_features, pool_measurements, tile_features
 from .refine import RefineNet, ResidualBlock
 
 __all__ = ["DFDModel", "RefinedResult", "RefineNet", "ResidualBlock", "tile_features", "num_features", "context_sizes",
-           "coarse_sizes", "pool_measurements", "coarse_measurements", "MODEL_FORMAT"]
+           "pool_measurements", "MODEL_FORMAT"]

@@ -51,8 +51,8 @@ from ..errors import InputError, ModelError
 from ..optics.thin_lens import camera_sigmas
 from .refine import RefineNet
 
-__all__ = ["DFDModel", "RefinedResult", "tile_features", "num_features", "context_sizes", "coarse_sizes",
-           "pool_measurements", "coarse_measurements", "MODEL_FORMAT"]
+__all__ = ["DFDModel", "RefinedResult", "tile_features", "num_features", "context_sizes", "pool_measurements",
+           "MODEL_FORMAT"]
 
 logger = logging.getLogger(__name__)
 
@@ -94,33 +94,10 @@ def context_sizes(context: int | Sequence[int]) -> tuple[int, ...]:
     return _odd_sides(context, "context", drop_one=True)
 
 
-def coarse_sizes(coarse: int | Sequence[int] | None, tile: int | None = None, stride: int | None = None
-                 ) -> tuple[int, ...]:
-    """The sides (in tiles) of the neighbourhoods over which the coarse (2x-decimated)
-    measurements are pooled, one coarse fit each: ``1`` is the coarse window alone. Sorted;
-    ``None`` or ``[]``: no coarse fit. With ``tile`` and ``stride``, also checks that the
-    grid allows coarse fits (a tile divisible by 4 and ``stride = tile / 2``).
-
-    Raises:
-        InputError: a side that is not a positive odd integer, the same side twice, or a
-            grid that does not allow coarse fits.
-
-    Example:
-        >>> coarse_sizes([5, 1]), coarse_sizes(None)
-        ((1, 5), ())
-    """
-    sides = () if coarse is None else _odd_sides(coarse, "coarse", drop_one=False)
-    if sides and tile is not None and stride is not None and (tile % 4 != 0 or 2 * stride != tile):
-        raise InputError(f"coarse fits need a tile divisible by 4 and stride = tile / 2, got tile {tile}, stride {stride}")
-    return sides
-
-
-def num_features(num_rings: int, context: int | Sequence[int] = 1, coarse: int | Sequence[int] | None = None) -> int:
+def num_features(num_rings: int, context: int | Sequence[int] = 1) -> int:
     """Number of channels :func:`tile_features` produces for ``num_rings`` rings (and one
-    pooled fit per context side > 1 and per coarse side)."""
-    n_coarse = len(coarse_sizes(coarse))
-    return (5 * num_rings + 8 + (2 * num_rings + 3) * (len(context_sizes(context)) + n_coarse)
-            + (2 * num_rings if n_coarse else 0))
+    pooled fit per context side > 1)."""
+    return 5 * num_rings + 8 + (2 * num_rings + 3) * len(context_sizes(context))
 
 
 def pool_measurements(measurements: tuple[torch.Tensor, ...], context: int) -> tuple[torch.Tensor, ...]:
@@ -132,33 +109,6 @@ def pool_measurements(measurements: tuple[torch.Tensor, ...], context: int) -> t
     """
     pad = context // 2
     return tuple(F.avg_pool2d(v, context, 1, pad, count_include_pad=False) for v in measurements)
-
-
-def coarse_measurements(coarse: FourierRatioDFD, image_f1: torch.Tensor, image_f2: torch.Tensor,
-                        fine_noise: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """Measurements of windows twice the tile's side, centred on every tile of the fine grid.
-
-    Both frames are averaged over 2x2 pixel blocks (decimated by 2), reflect-padded by a
-    quarter tile and measured by ``coarse`` (the fine estimator's settings with ``stride``
-    halved and ``mu`` halved, i.e. in decimated pixels): each window covers ``2 tile``
-    original pixels, so its DFT bins are twice as fine, with the same band in cycles per
-    decimated pixel (half of it in original pixels) at the cost of one more ``tile``-sized
-    DFT per tile. Finer bins resolve the low frequencies that carry the signal under large
-    blur (paper eq. 12 over a larger region R). The 2x2 average is the same linear filter on
-    both frames, so it cancels in their power ratio, and it turns white noise of variance
-    ``v`` into white noise of variance ``v / 4``; the noise level is taken from the fine
-    tiles (``fine_noise``, ``(B, 1, h, w)``, pooled over each window's 3x3 tiles), which see
-    less residual signal than decimated pixels would.
-
-    Returns:
-        ``(r1, r2, noise, m1, m2)`` as :meth:`~tdfd.dfd.FourierRatioDFD.measure`, on the
-        fine grid ``(h, w)``.
-    """
-    pad = coarse.tile // 4
-    dec = [F.pad(F.avg_pool2d(im, 2), (pad, pad, pad, pad), mode="reflect") for im in (image_f1, image_f2)]
-    r1, r2, _noise, m1, m2 = coarse.measure(*dec)
-    noise = F.avg_pool2d(fine_noise, 3, 1, 1, count_include_pad=False) / 4.0
-    return r1, r2, noise.clamp_min(coarse.min_noise_std ** 2), m1, m2
 
 
 def _square_difference_scale(camera: Camera, mu: float) -> float:
@@ -175,8 +125,7 @@ def _ring_d(result: DFDResult, analytic: FourierRatioDFD, d_scale: float) -> tup
 
 
 def tile_features(result: DFDResult, analytic: FourierRatioDFD,
-                  pooled: DFDResult | Sequence[DFDResult] | None = None,
-                  coarse: Sequence[DFDResult] = (), coarse_analytic: FourierRatioDFD | None = None) -> torch.Tensor:
+                  pooled: DFDResult | Sequence[DFDResult] | None = None) -> torch.Tensor:
     """Per-tile features for the refinement CNN from the analytic estimator's intermediates.
 
     Channels (``R`` rings): per-ring square-difference estimate ``-y_r / omega_r^2``
@@ -188,21 +137,16 @@ def tile_features(result: DFDResult, analytic: FourierRatioDFD,
     relative noise level, and the analytic confidence. With ``pooled`` (the fit of
     measurements averaged over neighbouring tiles, :func:`pool_measurements`, or a sequence
     of such fits over neighbourhoods of growing size) also, per pooled fit, its per-ring
-    estimates and gates, its ``sigma1^2 - sigma2^2``, log relative error and confidence; the
-    same for every fit of the coarse measurements (:func:`coarse_measurements`), with
-    ``sigma1^2 - sigma2^2`` converted to original pixels, and the per-ring log powers of both
-    frames of the last (widest) coarse fit, whose finer bins resolve the PSF's spectral shape.
+    estimates and gates, its ``sigma1^2 - sigma2^2``, log relative error and confidence.
 
     Args:
         result: :meth:`FourierRatioDFD.analyse` output.
         analytic: the estimator that produced it (ring frequencies, camera, limits).
         pooled: the pooled fit(s) (optional).
-        coarse: fits of the coarse measurements (optional).
-        coarse_analytic: the coarse estimator (needed with ``coarse``).
 
     Returns:
-        ``(B, 5R + 8 + P (2R + 3) + 2R [coarse], h, w)`` features for ``P`` pooled and coarse
-        fits, finite for every finite input.
+        ``(B, 5R + 8 + P (2R + 3), h, w)`` features for ``P`` pooled fits, finite for every
+        finite input.
     """
     near, far = analytic.camera.depth_range_m
     q_lo, q_hi = analytic.inv_depth_limits
@@ -229,18 +173,6 @@ def tile_features(result: DFDResult, analytic: FourierRatioDFD,
             torch.log(p.rel_error.clamp_min(1e-6)).clamp(-10.0, 5.0),
             p.confidence,
         ]
-    if coarse and coarse_analytic is None:
-        raise InputError("coarse fits need their estimator (coarse_analytic)")
-    for p in coarse:
-        scale = (analytic.mu / coarse_analytic.mu) ** 2  # decimated px^2 -> px^2
-        feats += [
-            *_ring_d(p, coarse_analytic, d_scale / scale),
-            (p.square_difference * scale / d_scale).clamp(-4.0, 4.0),
-            torch.log(p.rel_error.clamp_min(1e-6)).clamp(-10.0, 5.0),
-            p.confidence,
-        ]
-    if coarse:  # the finely resolved spectral shapes of both frames (PSF shape, e.g. pillbox zeros)
-        feats.append(coarse[-1].ring_log_power.clamp(-30.0, 30.0))
     return torch.cat(feats, 1)
 
 
@@ -281,10 +213,6 @@ class DFDModel(nn.Module):
         context: side (odd, in tiles) of the neighbourhood whose averaged measurements give
             a second, pooled analytic fit as extra features (1: none), or a sequence of such
             sides, one pooled fit each (``[3, 7]``: a local and a wider neighbourhood).
-        coarse: sides (odd, in tiles; 1 = the window alone) of the neighbourhoods over
-            which the coarse measurements (windows of ``2 tile`` pixels on the 2x-decimated
-            frames, :func:`coarse_measurements`) are pooled, one coarse fit each as extra
-            features (``None``: none). Needs an even ``tile`` and ``stride == tile / 2``.
         **refine_config: keyword arguments of :class:`~tdfd.model.refine.RefineNet`
             (``hidden``, ``blocks``, ``kernel_size``).
 
@@ -296,7 +224,7 @@ class DFDModel(nn.Module):
 
     def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, *, analytic: dict[str, Any] | None = None,
                  confidence_scale: float = 0.01, correction_scale: float = 1.0, context: int | Sequence[int] = 1,
-                 coarse: int | Sequence[int] | None = None, **refine_config: Any) -> None:
+                 **refine_config: Any) -> None:
         super().__init__()
         analytic = dict(analytic or {})
         for key in ("tile", "stride", "validate", "camera"):
@@ -306,8 +234,6 @@ class DFDModel(nn.Module):
             raise InputError("confidence_scale and correction_scale must be > 0")
         #: the pooled-context sides, sorted (empty: no pooled fit)
         self.contexts = context_sizes(context)
-        #: the coarse-fit sides, sorted (empty: no coarse fit)
-        self.coarse_sides = coarse_sizes(coarse, tile, stride)
         refine_config = dict(refine_config)
         refine_config.pop("in_channels", None)
         refine_config.pop("out_channels", None)
@@ -316,13 +242,8 @@ class DFDModel(nn.Module):
         self.analytic_config = analytic
         self.confidence_scale, self.correction_scale = float(confidence_scale), float(correction_scale)
         self.analytic = FourierRatioDFD(camera, tile=tile, stride=stride, validate=False, **analytic)
-        #: the coarse estimator: same settings on 2x-decimated frames (stride and mu halved)
-        self.coarse_analytic = (FourierRatioDFD(camera, tile=tile, stride=stride // 2, validate=False,
-                                                **{**analytic, "mu": self.analytic.mu / 2.0})
-                                if self.coarse_sides else None)
         try:
-            self.refine = RefineNet(num_features(self.analytic.num_rings, self.contexts, self.coarse_sides),
-                                    **refine_config)
+            self.refine = RefineNet(num_features(self.analytic.num_rings, self.contexts), **refine_config)
         except TypeError as exc:
             raise InputError(f"bad refine option: {exc}") from exc
         self.validate = True
@@ -353,7 +274,6 @@ class DFDModel(nn.Module):
                 "camera_name": self.camera.name, "tile": self.tile, "stride": self.stride,
                 "analytic": self.analytic_config, "confidence_scale": self.confidence_scale,
                 "correction_scale": self.correction_scale, "context": self.context,
-                **({"coarse": list(self.coarse_sides)} if self.coarse_sides else {}),
                 "refine": {k: v for k, v in self.refine.config().items() if k not in ("in_channels", "out_channels")}}
 
     # ------------------------------------------------------------------ compute
@@ -369,13 +289,7 @@ class DFDModel(nn.Module):
         b = image_f1.shape[0]
         r, *pooled = self._fit_stacked(self.analytic, [meas] + [pool_measurements(meas, c) for c in self.contexts],
                                        (1, *self.contexts), b)
-        coarse_fits: list[DFDResult] = []
-        if self.coarse_sides:
-            coarse = coarse_measurements(self.coarse_analytic, image_f1, image_f2, meas[2])
-            coarse_fits = self._fit_stacked(self.coarse_analytic,
-                                            [pool_measurements(coarse, c) if c > 1 else coarse for c in self.coarse_sides],
-                                            self.coarse_sides, b)
-        feats = tile_features(r, self.analytic, pooled, coarse_fits, self.coarse_analytic)
+        feats = tile_features(r, self.analytic, pooled)
         return feats.to(self.refine.head.weight.dtype), r
 
     @staticmethod
@@ -497,11 +411,14 @@ class DFDModel(nn.Module):
         """Build an (untrained) model from :meth:`config` output."""
         if cfg.get("format") != MODEL_FORMAT:
             raise ModelError(f"not a tdfd DFD model description (format {cfg.get('format')!r}, expected {MODEL_FORMAT!r})")
+        if cfg.get("coarse"):
+            raise ModelError(f"the model uses coarse fits {cfg['coarse']}, an experimental option that was never shipped "
+                             "and has been removed (docs/ARCHITECTURE.md)")
         try:
             camera = Camera.from_dict(cfg["camera"], name=cfg.get("camera_name", "custom"))
             return cls(camera, tile=cfg["tile"], stride=cfg["stride"], analytic=cfg.get("analytic") or {},
                        confidence_scale=cfg["confidence_scale"], correction_scale=cfg["correction_scale"],
-                       context=cfg.get("context", 1), coarse=cfg.get("coarse"), **cfg["refine"])
+                       context=cfg.get("context", 1), **cfg["refine"])
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelError(f"invalid model description: {exc!r}") from exc
 

@@ -45,7 +45,7 @@ import torch.nn.functional as F
 
 from ..camera import Camera
 from ..errors import InputError, NonFiniteError, ShapeError
-from .psf import PSFShape, kernel_size_for, psf_kernel
+from .psf import PSFShape, gaussian_psf_1d, kernel_size_for, psf_kernel
 from .thin_lens import blur_radius_from_power
 
 #: Kernels returned by a custom PSF function: ``(N, k, k)``, or separable ``((N, k), (N, k))``.
@@ -57,7 +57,6 @@ __all__ = [
     "defocus_uniform",
     "defocus_layered",
     "defocus_layered_multi",
-    "gaussian_psf_1d",
     "sigma_map",
     "render_at_power",
     "render_pair",
@@ -158,21 +157,10 @@ def _default_kernel_fn(shape: PSFShape) -> KernelFn:
     def kernel_fn(sigma: torch.Tensor, sample: torch.Tensor) -> KernelOut:
         size = kernel_size_for(float(sigma.detach().abs().max()) if sigma.numel() else 0.0, shape)
         if shape == "gaussian" or (not isinstance(shape, str) and float(shape) == 2.0):
-            return gaussian_psf_1d(sigma, size)  # separable: cheaper OTFs, same kernel
+            k1 = gaussian_psf_1d(sigma, size)  # separable: cheaper OTFs, same kernel
+            return k1, k1
         return psf_kernel(sigma, shape, size)
     return kernel_fn
-
-
-def gaussian_psf_1d(sigma: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The separable factors ``(k_y, k_x)`` of :func:`~tdfd.optics.psf.gaussian_psf`.
-
-    Returns two ``(*, size)`` tensors whose outer product is ``gaussian_psf(sigma, size)``.
-    """
-    s = sigma.abs().clamp_min(1e-6)[..., None]
-    x = torch.arange(size, dtype=sigma.dtype, device=sigma.device) - (size // 2)
-    k1 = 0.5 * (torch.erf((x + 0.5) / (math.sqrt(2.0) * s)) - torch.erf((x - 0.5) / (math.sqrt(2.0) * s)))
-    k1 = k1 / k1.sum(-1, keepdim=True)
-    return k1, k1
 
 
 def _kernel_otfs(kernels: KernelOut, padded_hw: tuple[int, int]) -> tuple[torch.Tensor, int]:

@@ -1,0 +1,52 @@
+"""The ONNX model contract's names, written once (``CONTRACT.md`` section 2).
+
+Torch-free (plain constants): the exporter (``export/``), the device runtime
+(:mod:`tdfd.runtime`) and the autofocus estimators all read the graph's input and output
+names, the metadata keys and the default model's location from here.
+
+Example:
+    >>> INPUT_NAMES, OUTPUT_NAMES[0], METADATA_KEYS[0]
+    (('image_f1', 'image_f2'), 'depth', 'tdfd.camera')
+"""
+
+from __future__ import annotations
+
+from pathlib import PurePosixPath
+
+__all__ = [
+    "INPUT_NAMES",
+    "OUTPUT_NAMES",
+    "CAMERA_KEY",
+    "GRID_KEY",
+    "VERSION_KEY",
+    "MODEL_KEY",
+    "METADATA_KEYS",
+    "MIN_OPSET",
+    "DEFAULT_MODEL_ENV",
+    "DEFAULT_MODEL_RELPATH",
+    "PACKAGED_MODEL_RELPATH",
+]
+
+#: Graph inputs, in order: the frames at the first and the second ECVFL power.
+INPUT_NAMES: tuple[str, str] = ("image_f1", "image_f2")
+#: Graph outputs, in the order the model returns them.
+OUTPUT_NAMES: tuple[str, str, str] = ("depth", "confidence", "depth_analytic")
+#: ``metadata_props`` key of the camera description (``Camera.to_dict()`` as JSON).
+CAMERA_KEY = "tdfd.camera"
+#: ``metadata_props`` key of the tile grid (``{"tile", "stride"}`` as JSON).
+GRID_KEY = "tdfd.grid"
+#: ``metadata_props`` key of the exporting package version (a JSON string literal).
+VERSION_KEY = "tdfd.version"
+#: Optional, informational ``metadata_props`` key: the model's full description.
+MODEL_KEY = "tdfd.model"
+#: The keys every exported file must carry, each value a JSON string.
+METADATA_KEYS: tuple[str, str, str] = (CAMERA_KEY, GRID_KEY, VERSION_KEY)
+#: Lowest ONNX opset the contract allows.
+MIN_OPSET = 18
+#: Environment variable naming the default model file.
+DEFAULT_MODEL_ENV = "TDFD_MODEL"
+#: The shipped model, relative to the repository root (or the working directory).
+DEFAULT_MODEL_RELPATH = PurePosixPath("models") / "reference.onnx"
+#: The shipped model as package data, relative to the ``tdfd`` package folder (in a checkout a
+#: link to :data:`DEFAULT_MODEL_RELPATH`; the wheel holds the file itself).
+PACKAGED_MODEL_RELPATH = PurePosixPath("assets") / "reference.onnx"
