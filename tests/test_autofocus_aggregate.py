@@ -9,7 +9,7 @@ import pytest
 
 from tdfd import Camera
 from tdfd.autofocus.aggregate import aggregate_depth
-from tdfd.autofocus.focus_power import in_focus_power_dpt
+from tdfd.camera import in_focus_power_dpt
 from tdfd.autofocus.roi import Roi, roi_crop_box, roi_tile_mask
 from tdfd.autofocus.sharpness import sharpness
 from tdfd.errors import InputError

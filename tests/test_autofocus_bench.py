@@ -129,7 +129,7 @@ def test_disconnect_reported(estimator):
 
 
 def test_continuous_tracks_a_moving_target(estimator):
-    with SimBench(estimator=estimator, readout_hw=HW, compute_s=0.005, texture_families=("pink",)) as b:
+    with SimBench(estimator=estimator, readout_hw=HW, compute_s=0.005, texture_families=("fractal",)) as b:
         res, rows = b.run_continuous(lambda t: 0.4 + 0.5 * t, duration_s=0.6, refocus_interval_s=0.15)
     assert res.status == "halted" and res.refocus_count >= 3
     depths = [d for _, _, d in res.history]

@@ -119,14 +119,17 @@ def test_onnx_estimator(tmp_path):
     from tdfd.errors import ModelError
 
     path = _toy_onnx(tmp_path / "toy.onnx")
-    est = OnnxEstimator(path, use_runtime=False)
-    assert est.camera == CAM and (est.tile, est.stride) == (64, 32) and est.backend == "onnxruntime"
-    d, c = est(np.full((128, 160), 0.25, np.float32), np.zeros((128, 160), np.float32))
-    assert d.shape == (3, 4) and np.allclose(d, 0.5) and np.allclose(c, 0.8)
+    est = OnnxEstimator(path)
+    assert est.camera == CAM and (est.tile, est.stride) == (64, 32) and est.backend == "tdfd.runtime"
+    f1 = np.full((128, 160), 0.25, np.float32)
+    f2 = (0.3 + 0.1 * (np.indices((128, 160)).sum(0) % 2)).astype(np.float32)
+    d, c = est(f1, f2)
+    assert d.shape == (3, 4) and np.allclose(d, 0.5) and np.allclose(c, 0.8) and est.last_problem is None
     rt = load_estimator(str(path))
-    assert isinstance(rt, OnnxEstimator) and rt.backend == "tdfd.runtime" and rt.camera.to_dict() == CAM.to_dict()
-    d2, c2 = rt(np.full((128, 160), 0.25, np.float32), np.zeros((128, 160), np.float32))
-    np.testing.assert_allclose(d2, d, rtol=1e-6)
+    assert isinstance(rt, OnnxEstimator) and rt.camera.to_dict() == CAM.to_dict()
+    # a pair that is no DFD pair (the lens did not move): zero confidence and the reason kept
+    d2, c2 = rt(f2, f2.copy())
+    assert np.all(c2 == 0.0) and "identical" in rt.last_problem
     with pytest.raises(ModelError):
         OnnxEstimator(tmp_path / "missing.onnx")
 

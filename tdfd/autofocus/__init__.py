@@ -13,8 +13,8 @@ Layers, bottom to top; a module imports only from its own layer or the ones belo
      checks) and :func:`drive` (a controller against a plant).
    * helpers the policies share: :mod:`~tdfd.autofocus.roi` (:class:`Roi`, ROI tiles),
      :mod:`~tdfd.autofocus.aggregate` (:func:`aggregate_depth`),
-     :mod:`~tdfd.autofocus.focus_power` (:func:`in_focus_power_dpt`),
-     :mod:`~tdfd.autofocus.sharpness` (:func:`sharpness`, texture over noise).
+     :mod:`~tdfd.autofocus.sharpness` (:func:`sharpness`, texture over noise); the in-focus
+     power is :func:`tdfd.camera.in_focus_power_dpt` (the one formula, re-exported here).
 
 2. Policies
 
@@ -43,7 +43,7 @@ from __future__ import annotations
 from .aggregate import DepthAggregate, aggregate_depth
 from .contrast import ContrastController, ContrastSearch
 from .dfd import DFDController
-from .focus_power import in_focus_power_dpt
+from ..camera import in_focus_power_dpt
 from .interfaces import Estimator, Plant
 from .machine import StateMachine, drive
 from .messages import AFResult

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError
-from .focus_power import in_focus_power_dpt
+from ..camera import in_focus_power_dpt
 from .machine import StateMachine
 from .messages import AFResult, Command, Observation, State
 from .roi import Roi

@@ -68,7 +68,7 @@ from ..camera import Camera
 from ..errors import InputError
 from .aggregate import DepthAggregate, aggregate_depth
 from .contrast import ContrastSearch
-from .focus_power import in_focus_power_dpt
+from ..camera import in_focus_power_dpt
 from .machine import Abort, Gen, StateMachine
 from .messages import Command, Estimate, Estimation, EstimateFault, Frame, Observation, State
 from .roi import Roi, roi_crop_box, roi_tile_mask

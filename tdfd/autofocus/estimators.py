@@ -6,8 +6,7 @@ powers, to ``(depth_m, confidence)`` on the tile grid, with ``camera``, ``tile``
 ``stride`` attributes.
 
 * :class:`OnnxEstimator`: an ONNX file of CONTRACT.md section 2 (camera and grid from its
-  metadata) through :class:`tdfd.runtime.DepthRuntime` when that module is present, else
-  directly through onnxruntime. No torch.
+  metadata) through :class:`tdfd.runtime.DepthRuntime`. No torch.
 * :class:`AnalyticEstimator`: the torch Fourier-ratio estimator
   (:class:`tdfd.dfd.FourierRatioDFD`), the stand-in before a trained model exists.
 
@@ -16,7 +15,6 @@ powers, to ``(depth_m, confidence)`` on the tile grid, with ``camera``, ``tile``
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -24,7 +22,10 @@ from typing import Any
 import numpy as np
 
 from ..camera import Camera
+from ..contract import DEFAULT_MODEL_RELPATH
 from ..errors import InputError, ModelError
+from ..runtime import DepthRuntime
+from ..runtime import default_model_path as runtime_default_model_path
 from .threads import torch_threads
 
 __all__ = ["OnnxEstimator", "AnalyticEstimator", "load_estimator", "default_model_path", "suggested_min_confidence",
@@ -37,17 +38,13 @@ ONNX_INTRA_THREADS = 1
 
 
 def default_model_path() -> Path:
-    """The default model: :func:`tdfd.runtime.default_model_path` (``$TDFD_MODEL``, then the
-    shipped ``models/reference.onnx``), or the shipped path if none exists yet."""
-    shipped = Path(__file__).resolve().parents[2] / "models" / "reference.onnx"
+    """The default model: :func:`tdfd.runtime.default_model_path` (``$TDFD_MODEL``, the
+    packaged model, ``./models/reference.onnx``), or the checkout's shipped path (which then
+    does not exist: the CLI says so and uses the analytic estimator)."""
     try:
-        from ..runtime import default_model_path as runtime_default
-    except ImportError:
-        return shipped
-    try:
-        return Path(runtime_default())
+        return Path(runtime_default_model_path())
     except ModelError:
-        return shipped
+        return Path(__file__).resolve().parents[2] / DEFAULT_MODEL_RELPATH
 
 
 def _as_frame(image: np.ndarray, name: str) -> np.ndarray:
@@ -70,18 +67,23 @@ def suggested_min_confidence(estimator: Any) -> float:
 
 
 class OnnxEstimator:
-    """The exported DFD model (one ``.onnx`` file, CONTRACT.md section 2).
+    """The exported DFD model (one ``.onnx`` file, CONTRACT.md section 2) through
+    :class:`tdfd.runtime.DepthRuntime` (numpy and onnxruntime only; no torch).
+
+    The runtime checks every pair (:func:`tdfd.pair_check.pair_problem`): a pair that is no
+    DFD pair (identical, black or saturated frames) comes back with zero confidence, and its
+    reason is kept in :attr:`last_problem` for the loop to report.
 
     Args:
         path: the ONNX file (default: :func:`default_model_path`).
-        use_runtime: prefer :class:`tdfd.runtime.DepthRuntime` if importable.
         threads: onnxruntime intra-op threads.
 
     Attributes:
         camera: from the ``tdfd.camera`` metadata.
         tile, stride: from ``tdfd.grid``.
         path: the file.
-        backend: ``"tdfd.runtime"`` or ``"onnxruntime"``.
+        backend: ``"tdfd.runtime"``.
+        last_problem: why the last pair was no DFD pair, or ``None``.
         min_confidence: suggested ROI-confidence threshold for autofocus (see
             :func:`suggested_min_confidence`), tuned on the bench with the reference model
             on targets apart from the benchmark's.
@@ -90,62 +92,24 @@ class OnnxEstimator:
         ModelError: the file is missing or lacks the contract's inputs, outputs or metadata.
     """
 
-    def __init__(self, path: str | Path | None = None, use_runtime: bool = True, threads: int = ONNX_INTRA_THREADS) -> None:
+    backend = "tdfd.runtime"
+
+    def __init__(self, path: str | Path | None = None, threads: int = ONNX_INTRA_THREADS) -> None:
         self.path = Path(path) if path is not None else default_model_path()
         self.threads = int(threads)
         self.min_confidence = 0.003
         if not self.path.is_file():
             raise ModelError(f"ONNX model {self.path} not found")
-        self._runtime: Any = None
-        if use_runtime:
-            try:
-                from ..runtime import DepthRuntime  # type: ignore[import-not-found]
-            except ImportError:
-                DepthRuntime = None  # noqa: N806
-            if DepthRuntime is not None:
-                rt = DepthRuntime(self.path, threads=self.threads)
-                self._runtime = rt
-                self.camera: Camera = rt.camera
-                self.tile, self.stride = int(rt.tile), int(rt.stride)
-                self.backend = "tdfd.runtime"
-                return
-        self._open_session()
-        self.backend = "onnxruntime"
-
-    def _open_session(self) -> None:
-        import onnxruntime as ort
-
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = self.threads
-        opts.inter_op_num_threads = 1
-        try:
-            self._session = ort.InferenceSession(str(self.path), sess_options=opts, providers=["CPUExecutionProvider"])
-        except Exception as exc:  # onnxruntime raises its own exception types
-            raise ModelError(f"cannot load {self.path}: {exc}") from exc
-        meta = self._session.get_modelmeta().custom_metadata_map
-        try:
-            self.camera = Camera.from_json(meta["tdfd.camera"], name=self.path.stem)
-            grid = json.loads(meta["tdfd.grid"])
-            self.tile, self.stride = int(grid["tile"]), int(grid["stride"])
-        except (KeyError, ValueError, TypeError) as exc:
-            raise ModelError(f"{self.path} lacks valid tdfd.camera / tdfd.grid metadata: {exc}") from exc
-        names_in = [i.name for i in self._session.get_inputs()]
-        names_out = [o.name for o in self._session.get_outputs()]
-        if names_in[:2] != ["image_f1", "image_f2"] or not {"depth", "confidence"} <= set(names_out):
-            raise ModelError(f"{self.path}: inputs {names_in}, outputs {names_out} do not follow the contract")
+        self._runtime = DepthRuntime(self.path, threads=self.threads)
+        self.camera: Camera = self._runtime.camera
+        self.tile, self.stride = int(self._runtime.tile), int(self._runtime.stride)
+        self.last_problem: str | None = None
 
     def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Depth (m) and confidence, each ``(h, w)``, for one pair of ``(H, W)`` frames."""
-        a, b = _as_frame(image_f1, "image_f1"), _as_frame(image_f2, "image_f2")
-        if self._runtime is not None:
-            res = self._runtime(a, b)
-            depth, conf = res.depth, res.confidence
-        else:
-            if a.shape != b.shape:
-                raise InputError(f"image_f1 {a.shape} and image_f2 {b.shape} differ in shape")
-            if a.shape[-2] < self.tile or a.shape[-1] < self.tile:
-                raise InputError(f"frames {a.shape[-2:]} are smaller than one {self.tile}px tile")
-            depth, conf = self._session.run(["depth", "confidence"], {"image_f1": a, "image_f2": b})
+        res = self._runtime(_as_frame(image_f1, "image_f1"), _as_frame(image_f2, "image_f2"))
+        self.last_problem = res.problem
+        depth, conf = res.depth, res.confidence
         return np.asarray(depth, np.float32).reshape(np.shape(depth)[-2:]), np.asarray(conf, np.float32).reshape(np.shape(conf)[-2:])
 
     def __repr__(self) -> str:

@@ -33,6 +33,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError, TdfdError
+from ..frames import raw_to_linear, srgb_to_linear
 from .contrast import ContrastController
 from .dfd import DFDController
 from .estimators import suggested_min_confidence
@@ -70,17 +71,19 @@ class CaptureError(TdfdError, RuntimeError):
     """
 
 
-def _srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-
-
-def frame_to_linear(frame: np.ndarray, white_level: float | None = None, linearise: bool = False) -> np.ndarray:
-    """A captured frame as ``(H, W)`` float32 in [0, 1].
+def frame_to_linear(frame: np.ndarray, white_level: float | None = None, linearise: bool = False,
+                    name: str = "camera frame") -> np.ndarray:
+    """A captured frame as ``(H, W)`` float32 in [0, 1] (:func:`tdfd.frames.raw_to_linear`'s policy).
 
     Args:
         frame: ``(H, W)`` or ``(H, W, 3)`` BGR, uint8 / uint16 / float.
         white_level: raw value of white (default: 255 for uint8, 65535 for uint16, 1 for floats).
         linearise: undo an sRGB gamma (only if the camera cannot deliver linear data).
+        name: the frame's name in error messages.
+
+    Raises:
+        RangeError: values above the white level (a wrong ``white_level``); never clipped
+            silently. The plants report it as a capture fault.
 
     Example:
         >>> frame_to_linear(np.full((2, 2), 255, np.uint8)).tolist()
@@ -91,11 +94,9 @@ def frame_to_linear(frame: np.ndarray, white_level: float | None = None, lineari
     a = np.asarray(frame)
     if a.ndim == 3:
         a = cv2.cvtColor(a[..., :3], cv2.COLOR_BGR2GRAY) if a.shape[2] >= 3 else a[..., 0]
-    if white_level is None:
-        white_level = 65535.0 if a.dtype == np.uint16 else 255.0 if a.dtype == np.uint8 else 1.0
-    x = np.clip(a.astype(np.float64) / float(white_level), 0.0, 1.0)
+    x = raw_to_linear(a, white_level, name)
     if linearise:
-        x = _srgb_to_linear(x)
+        x = srgb_to_linear(x)
     return x.astype(np.float32)
 
 
@@ -139,7 +140,7 @@ class OpenCVCamera:
         ok, frame = self.cap.read()
         if not ok or frame is None:
             raise CaptureError(f"camera {self.source!r} delivered no frame")
-        x = frame_to_linear(frame, self.white_level, self.linearise)
+        x = frame_to_linear(frame, self.white_level, self.linearise, name=f"camera {self.source!r} frame")
         return self.crop.crop(x) if self.crop is not None else x
 
     def close(self) -> None:

@@ -15,9 +15,8 @@ __all__ = ["SensorNoise"]
 class SensorNoise:
     """Sensor noise and quantisation of the virtual camera.
 
-    Uses :class:`tdfd.sensor.SensorModel` (Poisson–Gaussian noise, full-well clipping,
-    black level, quantisation) when that module is available, else an equivalent
-    Poisson–Gaussian model without black level.
+    The library's one sensor model, :class:`tdfd.sensor.SensorModel` (Poisson–Gaussian
+    noise, full-well clipping, black level, quantisation).
 
     Attributes:
         full_well_e: electrons at white level.
@@ -39,17 +38,9 @@ class SensorNoise:
         if not self.enabled:
             return x.astype(np.float32)
         seed = int(rng.integers(0, 2**62))
-        try:
-            import torch
+        from ...sensor import SensorModel  # torch: the simulated bench only
 
-            from ...sensor import SensorModel
-        except ImportError:
-            electrons = rng.poisson(x * self.full_well_e) + rng.normal(0.0, self.read_noise_e, x.shape)
-            levels = 2**self.bits - 1
-            y = np.clip(np.round(electrons / self.full_well_e * levels), 0, levels) / levels
-            return y.astype(np.float32)
         model = SensorModel(full_well_e=self.full_well_e, read_noise_e=self.read_noise_e, bits=self.bits,
                             black_level_dn=self.black_level_dn)
-        with torch.no_grad(), torch_threads(1):
-            y = model(torch.from_numpy(x.astype(np.float32))[None, None], generator=torch.Generator().manual_seed(seed))
-        return y[0, 0].numpy().astype(np.float32)
+        with torch_threads(1):
+            return model.apply_numpy(x.astype(np.float32), seed)

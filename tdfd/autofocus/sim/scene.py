@@ -9,25 +9,10 @@ from typing import Sequence
 import numpy as np
 
 from ...errors import InputError
+from ...frames import raw_to_linear, srgb_to_linear
 from ..roi import Roi
 
 __all__ = ["Scene", "BENCH_TEXTURE_FAMILIES"]
-
-
-def _procedural_texture(hw: tuple[int, int], seed: int, albedo_contrast: float = 1.0) -> np.ndarray:
-    """A seeded 1/f ("pink") noise texture in [0.1, 0.9] (fallback for :mod:`tdfd.textures`)."""
-    h, w = hw
-    rng = np.random.default_rng(seed)
-    fy = np.fft.fftfreq(h)[:, None]
-    fx = np.fft.rfftfreq(w)[None, :]
-    f = np.sqrt(fx * fx + fy * fy)
-    f[0, 0] = 1.0
-    amp = 1.0 / f ** rng.uniform(0.8, 1.2)
-    amp[0, 0] = 0.0
-    phase = rng.uniform(0, 2 * np.pi, amp.shape)
-    x = np.fft.irfft2(amp * np.exp(1j * phase), s=(h, w))
-    x = (x - x.mean()) / (x.std() + 1e-12)
-    return np.clip(0.5 + 0.16 * albedo_contrast * x, 0.1, 0.9)
 
 
 #: texture families of the bench's default targets (textured surfaces; ``flat`` and
@@ -37,14 +22,12 @@ BENCH_TEXTURE_FAMILIES = ("fractal", "bandlimited", "voronoi", "dead_leaves", "s
 
 
 def _library_texture(hw: tuple[int, int], seed: int, families: Sequence[str] = BENCH_TEXTURE_FAMILIES
-                     ) -> tuple[np.ndarray, str] | None:
-    """A seeded texture from :func:`tdfd.textures.random_texture` (``None`` if unavailable)."""
-    try:
-        import torch
+                     ) -> tuple[np.ndarray, str]:
+    """A seeded texture from :func:`tdfd.textures.random_texture` and its family's name."""
+    import torch  # the simulated bench renders with torch; the hardware loop never gets here
 
-        from ...textures import random_texture
-    except ImportError:
-        return None
+    from ...textures import random_texture
+
     g = torch.Generator().manual_seed(int(seed))
     tex, params = random_texture(g, hw, families=list(families), albedo=(0.5, 0.9), contrast=(0.3, 1.0))
     return tex[0, 0].double().numpy(), str(params.get("family", "texture"))
@@ -92,15 +75,14 @@ class Scene:
             seed: texture seed.
             uniform: a texture-less grey plane instead.
             families: :mod:`tdfd.textures` families to draw from (default
-                :data:`BENCH_TEXTURE_FAMILIES`); ``("pink",)`` is a built-in 1/f noise.
+                :data:`BENCH_TEXTURE_FAMILIES`); ``fractal`` is the 1/f ("pink") family.
         """
         name = "uniform"
         families = tuple(families) if families else BENCH_TEXTURE_FAMILIES
         if uniform:
             sharp = np.full(hw, 0.5)
         else:
-            lib = None if families == ("pink",) else _library_texture(hw, seed, families)
-            sharp, name = lib if lib is not None else (_procedural_texture(hw, seed), "pink noise")
+            sharp, name = _library_texture(hw, seed, families)
         return cls(sharp, np.full(hw, float(depth_m)), name=name)
 
     @classmethod
@@ -125,10 +107,9 @@ class Scene:
             raise InputError(f"cannot read the scene image {image_path}")
         if img.ndim == 3:
             img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2GRAY)
-        white = 65535.0 if img.dtype == np.uint16 else 255.0 if img.dtype == np.uint8 else 1.0
-        x = img.astype(np.float64) / white
+        x = raw_to_linear(img, None, name=str(image_path)).astype(np.float64)
         if linearise and img.dtype == np.uint8:
-            x = np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+            x = srgb_to_linear(x)
         try:
             depth = np.load(str(depth_path)).astype(np.float64)
         except (OSError, ValueError) as exc:
