@@ -118,8 +118,8 @@ MUTATIONS: list[Mutation] = [
         name="in-focus-power",
         point="in-focus ECVFL power 1/d_o + 1/d_s - 1/f0 (camera.py)",
         path="tdfd/camera.py",
-        old="return 1.0 / d + 1.0 / self.sensor_distance_m - self.fixed_power_dpt",
-        new="return -1.0 / d + 1.0 / self.sensor_distance_m - self.fixed_power_dpt",
+        old="p = 1.0 / d + 1.0 / camera.sensor_distance_m - camera.fixed_power_dpt",
+        new="p = -1.0 / d + 1.0 / camera.sensor_distance_m - camera.fixed_power_dpt",
         tests=("tests/test_camera.py", "tests/test_autofocus_controller.py"),
     ),
     # The assist light (tdfd/light) keys its emitter with a serial modem line (RTS/DTR). It is
