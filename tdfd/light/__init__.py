@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from .base import ON, AssistLight
 from .command import CommandLight
-from .guard import DEFAULT_LIMITS, LightGuard, LightLimits
+from .guard import DEFAULT_LIMITS, LightGuard, LightLimits, exposure
 from .serial_line import SerialLineLight, open_serial_line
 from .simulated import SIMULATED_PATTERNS, SimulatedLight
 from .spec import LightSpec, open_light, parse_light_spec
@@ -40,6 +40,7 @@ __all__ = [
     "SIMULATED_PATTERNS",
     "SerialLineLight",
     "SimulatedLight",
+    "exposure",
     "open_light",
     "open_serial_line",
     "parse_light_spec",

@@ -59,7 +59,7 @@ from typing import Callable, Iterator
 from ..errors import InputError, LightSafetyError
 from .base import AssistLight
 
-__all__ = ["LightLimits", "LightGuard", "DEFAULT_LIMITS"]
+__all__ = ["LightLimits", "LightGuard", "DEFAULT_LIMITS", "exposure"]
 
 log = logging.getLogger(__name__)
 
@@ -363,3 +363,19 @@ class LightGuard:
             if self._on_since is not None and getattr(self, "_token", None) is token:
                 self._timer = None
                 self._trip("watchdog: on-time or duty budget used up")
+
+
+def exposure(guard: LightGuard | None, pattern: str | None, expected_s: float = 0.0
+             ) -> contextlib.AbstractContextManager:
+    """What a plant wraps one exposure in: the light on with ``pattern`` for the block
+    (through ``guard``), or nothing for an unlit frame (``pattern=None``).
+
+    Raises:
+        LightSafetyError: a lit frame without a guarded light (none was named), or a cap
+            refused it.
+    """
+    if pattern is None:
+        return contextlib.nullcontext()
+    if guard is None:
+        raise LightSafetyError(f"a frame lit with {pattern!r} was asked for, but no assist light was named")
+    return guard.exposing(pattern, expected_s)
