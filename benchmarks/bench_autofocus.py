@@ -7,7 +7,7 @@ Run from the repository root:
 
 Every configuration runs the same targets (stratified, uniform in inverse depth across
 0.3-1.0 m) and the same seeded scenes: a textured plane per trial drawn from
-``tdfd.autofocus.bench.BENCH_TEXTURE_FAMILIES``, with sensor noise. The lens is the
+``tdfd.autofocus.sim.BENCH_TEXTURE_FAMILIES``, with sensor noise. The lens is the
 emulator on a pty driven through the real driver; time is the bench's simulated clock
 (serial bytes at 115200 baud, 15 ms settling to 1 %, 60 fps camera, 2 ms exposure, 3 ms
 read-out, the estimator's median wall time on this machine). Prints the tables, writes
@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import numpy as np
 
-    from tdfd.autofocus.bench import BENCH_TEXTURE_FAMILIES, CameraTiming, SimBench, trial_depths
+    from tdfd.autofocus.sim import BENCH_TEXTURE_FAMILIES, CameraTiming, SimBench, trial_depths
     from tdfd.autofocus.estimators import OnnxEstimator, load_estimator
     from tdfd.autofocus.report import write_report
     from tdfd.driver import Faults

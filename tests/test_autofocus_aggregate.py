@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 
 from tdfd import Camera
-from tdfd.autofocus.contrast import sharpness
-from tdfd.autofocus.controller import Roi, aggregate_depth, in_focus_power_dpt, roi_crop_box, roi_tile_mask
+from tdfd.autofocus.aggregate import aggregate_depth
+from tdfd.autofocus.focus_power import in_focus_power_dpt
+from tdfd.autofocus.roi import Roi, roi_crop_box, roi_tile_mask
+from tdfd.autofocus.sharpness import sharpness
 from tdfd.errors import InputError
 from tdfd.grid import grid_shape, tile_centres
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from tdfd import Camera
-from tdfd.autofocus.bench import CameraTiming, Scene, SensorNoise, SimBench, SimClock, trial_depths
+from tdfd.autofocus.sim import CameraTiming, Scene, SensorNoise, SimBench, SimClock, trial_depths
 from tdfd.autofocus.estimators import AnalyticEstimator
 from tdfd.driver import Faults
 from tdfd.errors import InputError

@@ -9,11 +9,12 @@ import pytest
 
 from tdfd import Camera
 from tdfd.autofocus.contrast import ContrastController
-from tdfd.autofocus.controller import (
+from tdfd.autofocus.dfd import DFDController
+from tdfd.autofocus.machine import drive
+from tdfd.autofocus.messages import (
     Capture,
     CaptureFault,
     ControllerError,
-    DFDController,
     Done,
     Estimate,
     EstimateFault,
@@ -22,11 +23,10 @@ from tdfd.autofocus.controller import (
     Halt,
     LensAck,
     LensFault,
-    Roi,
     SetPower,
     State,
-    drive,
 )
+from tdfd.autofocus.roi import Roi
 
 CAM = Camera.preset("reference")
 P1, P2 = CAM.lens_powers_dpt

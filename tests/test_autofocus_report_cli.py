@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from tdfd import Camera
-from tdfd.autofocus.bench import TrialRecord
+from tdfd.autofocus.sim import TrialRecord
 from tdfd.autofocus.report import TRIAL_KEYS, build_report, format_summary, format_table, summarise, write_report
 from tdfd.cli import main
 
@@ -136,7 +136,7 @@ def test_shipped_model_if_present():
 
     if not default_model_path().is_file():
         pytest.skip("models/reference.onnx not shipped yet")
-    from tdfd.autofocus.bench import SimBench
+    from tdfd.autofocus.sim import SimBench
 
     with SimBench(estimator=OnnxEstimator(), readout_hw=(192, 256), compute_s=0.005, texture_families=("fractal",)) as b:
         recs = b.run_trials([0.35, 0.8], methods=("dfd",))

@@ -1,31 +1,54 @@
 """Autofocus: the DFD control loop, the contrast-detect baseline, the simulated bench and
 the real-hardware loop (``tdfd autofocus``).
 
-* :mod:`tdfd.autofocus.controller`: :class:`DFDController`, a pure state machine
-  (observation in, command out), ROI aggregation and the in-focus power.
-* :mod:`tdfd.autofocus.contrast`: :class:`ContrastController`, contrast-detect AF.
-* :mod:`tdfd.autofocus.bench`: the simulated bench (lens emulator on a pty through the
-  real driver, a virtual camera on a simulated clock).
-* :mod:`tdfd.autofocus.hardware`: OpenCV capture + the serial driver.
-* :mod:`tdfd.autofocus.report`: the autofocus report of CONTRACT.md section 3.
+Layers, bottom to top; a module imports only from its own layer or the ones below:
 
-Heavy dependencies (torch, onnxruntime) are imported only where used.
+1. Protocol and state machine
+
+   * :mod:`~tdfd.autofocus.messages`: commands (``SetPower``, ``Capture``, ``Estimate``,
+     ``Done``), observations (``LensAck``, ``Frame``, ``Estimation``, their faults,
+     ``Halt``), :class:`~tdfd.autofocus.messages.State`, :class:`AFResult`.
+   * :mod:`~tdfd.autofocus.interfaces`: the :class:`Estimator` and ``Plant`` protocols.
+   * :mod:`~tdfd.autofocus.machine`: ``StateMachine`` (retries, counting, answer
+     checks) and :func:`drive` (a controller against a plant).
+   * helpers the policies share: :mod:`~tdfd.autofocus.roi` (:class:`Roi`, ROI tiles),
+     :mod:`~tdfd.autofocus.aggregate` (:func:`aggregate_depth`),
+     :mod:`~tdfd.autofocus.focus_power` (:func:`in_focus_power_dpt`),
+     :mod:`~tdfd.autofocus.sharpness` (:func:`sharpness`, texture over noise).
+
+2. Policies
+
+   * :mod:`~tdfd.autofocus.contrast`: :class:`ContrastSearch`, :class:`ContrastController`.
+   * :mod:`~tdfd.autofocus.dfd`: :class:`DFDController` (falls back to the contrast search).
+
+3. Plants and what they plug in
+
+   * :mod:`~tdfd.autofocus.estimators`: the shipped ONNX model or the analytic stand-in
+     (:mod:`~tdfd.autofocus.threads`: torch threads for it and the bench).
+   * :mod:`~tdfd.autofocus.lens_command`: a set-point with read-back, for both plants.
+   * :mod:`tdfd.autofocus.sim`: the simulated bench (lens emulator on a pty through the
+     real driver, a virtual camera on a simulated clock); its ``__init__`` lists its files.
+   * :mod:`~tdfd.autofocus.hardware`: OpenCV capture + the serial driver.
+
+4. Reporting and CLI
+
+   * :mod:`~tdfd.autofocus.report`: the autofocus report of CONTRACT.md section 3.
+   * :mod:`~tdfd.autofocus.cli`: ``tdfd autofocus``.
+
+Heavy dependencies (torch, onnxruntime, OpenCV) are imported only where used.
 """
 
 from __future__ import annotations
 
-from .contrast import ContrastController, ContrastSearch, sharpness
-from .controller import (
-    AFResult,
-    DepthAggregate,
-    DFDController,
-    Estimator,
-    Roi,
-    aggregate_depth,
-    drive,
-    in_focus_power_dpt,
-    roi_tile_mask,
-)
+from .aggregate import DepthAggregate, aggregate_depth
+from .contrast import ContrastController, ContrastSearch
+from .dfd import DFDController
+from .focus_power import in_focus_power_dpt
+from .interfaces import Estimator, Plant
+from .machine import StateMachine, drive
+from .messages import AFResult
+from .roi import Roi, roi_crop_box, roi_tile_mask
+from .sharpness import sharpness
 
 __all__ = [
     "AFResult",
@@ -34,10 +57,13 @@ __all__ = [
     "DepthAggregate",
     "DFDController",
     "Estimator",
+    "Plant",
     "Roi",
+    "StateMachine",
     "aggregate_depth",
     "drive",
     "in_focus_power_dpt",
+    "roi_crop_box",
     "roi_tile_mask",
     "sharpness",
 ]

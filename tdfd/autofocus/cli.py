@@ -21,7 +21,15 @@ import sys
 from pathlib import Path
 from typing import Any
 
-__all__ = ["register", "run", "main"]
+from ..driver import Faults
+from ..errors import InputError
+from .estimators import default_model_path, load_estimator
+from .hardware import run_hardware
+from .report import build_report, format_summary, format_table, write_report
+from .roi import Roi
+from .sim import DEFAULT_READOUT_HW, CameraTiming, Scene, SensorNoise, SimBench, trial_depths
+
+__all__ = ["register", "run"]
 
 log = logging.getLogger(__name__)
 
@@ -115,8 +123,6 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _roi(args: argparse.Namespace):
-    from .controller import Roi
-
     return Roi.parse(args.roi) if args.roi else None
 
 
@@ -130,20 +136,14 @@ def _psf(text: str) -> Any:
 def _faults(text: str | None, seed: int):
     if not text:
         return None
-    from ..driver import Faults
-
     try:
         return Faults.parse([s for s in text.split(",") if s.strip()], seed=seed)
     except ValueError as exc:
-        from ..errors import InputError
-
         raise InputError(str(exc)) from exc
 
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of ``tdfd autofocus``."""
-    from ..errors import InputError
-
     if args.sim and (args.port or args.camera):
         raise InputError("--sim runs the simulated bench: drop --port/--camera (or drop --sim)")
     if not args.sim and not args.camera:
@@ -154,8 +154,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _estimator(args: argparse.Namespace, needed: bool):
-    from .estimators import default_model_path, load_estimator
-
     if not needed:
         return None
     if args.model is None and not default_model_path().is_file():
@@ -173,11 +171,6 @@ def _estimator_name(est: Any) -> str:
 
 def _run_sim(args: argparse.Namespace) -> int:
     import numpy as np
-
-    from ..errors import InputError
-    from .bench import DEFAULT_READOUT_HW, CameraTiming, Scene, SensorNoise, SimBench, trial_depths
-    from .controller import Roi
-    from .report import build_report, format_summary, format_table
 
     if args.trials < 1:
         raise InputError("--trials must be >= 1")
@@ -253,8 +246,6 @@ def _run_sim(args: argparse.Namespace) -> int:
     print()
     print(format_summary(report["summary"]))
     if args.json:
-        from .report import write_report
-
         write_report(args.json, records, settings)
         print(f"report written to {args.json}")
     ok = all(r.status == "focused" for r in records)
@@ -292,12 +283,8 @@ def _continuous(args: argparse.Namespace, bench) -> int:
 
 
 def _run_hardware(args: argparse.Namespace) -> int:
-    from .hardware import run_hardware
-
     method = args.method or "dfd"
     if method == "both":
-        from ..errors import InputError
-
         raise InputError("--method both is for the simulated bench")
     est = _estimator(args, method == "dfd")
     res = run_hardware(args.port, args.camera, est, method=method, roi=_roi(args), verify=args.verify,
@@ -322,14 +309,3 @@ def _run_hardware(args: argparse.Namespace) -> int:
     if args.dry_run:
         print("dry run: the lens was not moved" + ("" if res.power_dpt is None else f"; it would be set to {res.power_dpt:.3f} dpt"))
     return 0 if res.ok or res.status == "halted" else 1
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m tdfd.autofocus.cli ...`` (same as ``tdfd autofocus ...``)."""
-    from ..cli import main as tdfd_main
-
-    return tdfd_main(["autofocus", *(argv if argv is not None else sys.argv[1:])])
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -1,6 +1,6 @@
 """Depth estimators for the autofocus loop: the shipped ONNX model, or the analytic stand-in.
 
-Each is an :class:`~tdfd.autofocus.controller.Estimator`: ``(image_f1, image_f2)``, two
+Each is an :class:`~tdfd.autofocus.interfaces.Estimator`: ``(image_f1, image_f2)``, two
 ``(H, W)`` float32 frames of linear intensity in [0, 1] captured at the camera's two ECVFL
 powers, to ``(depth_m, confidence)`` on the tile grid, with ``camera``, ``tile`` and
 ``stride`` attributes.
@@ -25,6 +25,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError, ModelError
+from .threads import torch_threads
 
 __all__ = ["OnnxEstimator", "AnalyticEstimator", "load_estimator", "default_model_path", "suggested_min_confidence",
            "ONNX_INTRA_THREADS"]
@@ -180,8 +181,6 @@ class AnalyticEstimator:
         torch = self._torch
         a = torch.from_numpy(_as_frame(image_f1, "image_f1").copy())
         b = torch.from_numpy(_as_frame(image_f2, "image_f2").copy())
-        from .bench import torch_threads
-
         with torch.no_grad(), torch_threads(self.threads):
             depth, conf = self._model(a, b)
         return depth[0, 0].numpy(), conf[0, 0].numpy()

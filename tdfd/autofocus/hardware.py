@@ -31,25 +31,28 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ..camera import Camera
 from ..errors import InputError, TdfdError
-from .controller import (
+from .contrast import ContrastController
+from .dfd import DFDController
+from .estimators import suggested_min_confidence
+from .interfaces import Estimator
+from .lens_command import command_lens
+from .machine import StateMachine, drive
+from .messages import (
     AFResult,
     Capture,
     CaptureFault,
-    DFDController,
     Estimate,
-    EstimateFault,
     Estimation,
-    Estimator,
+    EstimateFault,
     Frame,
+    Halt,
     LensAck,
     LensFault,
-    Roi,
     SetPower,
-    StateMachine,
-    drive,
 )
-from .contrast import ContrastController
+from .roi import Roi
 
 __all__ = ["CaptureError", "OpenCVCamera", "HardwarePlant", "frame_to_linear", "run_hardware", "drive_to_halt",
            "HARDWARE_TEMPERATURE_LIMITS_C"]
@@ -182,8 +185,6 @@ class HardwarePlant:
         t = self.clock()
         if self.lens is None:
             return LensFault(power_dpt, "no lens (dry run)", t)
-        from .bench import command_lens
-
         try:
             sent = command_lens(self.lens, power_dpt, verify=self.readback, clock=self.clock)
         except TdfdError as exc:
@@ -237,7 +238,7 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
         estimator: depth estimator (its camera gives the capture powers); ``None`` for contrast.
         method: ``"dfd"`` or ``"contrast"``.
         roi: region of interest in frame pixels.
-        verify, continuous: see :class:`~tdfd.autofocus.controller.DFDController`.
+        verify, continuous: see :class:`~tdfd.autofocus.dfd.DFDController`.
         dry_run: capture and estimate without touching the lens.
         duration_s: length of a continuous run (s); ``None``: until Ctrl-C.
         settle_s: settling wait after each lens command (s).
@@ -248,7 +249,7 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
         camera, lens: already-open objects to use instead of opening ``camera_source`` / ``port``.
 
     Returns:
-        The :class:`~tdfd.autofocus.controller.AFResult`; lens and camera faults end up in it
+        The :class:`~tdfd.autofocus.messages.AFResult`; lens and camera faults end up in it
         (``status="failed"``), they are not raised.
 
     Raises:
@@ -256,7 +257,6 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
         LensConnectionError: the port cannot be opened.
         InputError: inconsistent options.
     """
-    from ..camera import Camera
     from ..driver import OptotuneLens
 
     if method not in ("dfd", "contrast"):
@@ -283,8 +283,6 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
         optics = estimator.camera if estimator is not None else Camera.preset("reference")
         ctrl: StateMachine
         if method == "dfd":
-            from .estimators import suggested_min_confidence
-
             ctrl = DFDController(optics, roi=roi, settle_s=settle_s, verify=verify, dry_run=dry_run,
                                  continuous=continuous, power_limits_dpt=limits, contrast=contrast,
                                  grid=(estimator.tile, estimator.stride),
@@ -309,8 +307,6 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
 
 def drive_to_halt(ctrl: StateMachine, plant: HardwarePlant) -> AFResult:
     """After Ctrl-C: end the controller's run cleanly with a :class:`Halt`."""
-    from .controller import Halt
-
     if ctrl.done:
         return ctrl.result
     cmd = ctrl.step(Halt(plant.now()))

@@ -6,7 +6,7 @@ statistics, the bench settings, and a note for every trial that failed or fell b
 with its reason) goes into ``summary``.
 
 Example:
-    >>> from tdfd.autofocus.bench import TrialRecord
+    >>> from tdfd.autofocus.sim.trials import TrialRecord
     >>> r = TrialRecord(0.5, 0.501, 2.0, 2.004, 0.02, 2, 3, 55.1, "dfd")
     >>> sorted(trial_entry(r)) == sorted(TRIAL_KEYS)
     True
@@ -44,7 +44,7 @@ def _num(x: Any, nd: int = 6) -> Any:
 
 
 def trial_entry(record: Any) -> dict[str, Any]:
-    """The contract's trial object for a :class:`~tdfd.autofocus.bench.TrialRecord` (exactly :data:`TRIAL_KEYS`)."""
+    """The contract's trial object for a :class:`~tdfd.autofocus.sim.trials.TrialRecord` (exactly :data:`TRIAL_KEYS`)."""
     return {
         "target_depth_m": _num(record.target_depth_m),
         "estimated_depth_m": _num(record.estimated_depth_m),
