@@ -16,7 +16,8 @@ What lives where:
 * :mod:`tdfd.light.spec`: ``--assist-light`` parsing (:func:`parse_light_spec`) and
   opening (:func:`open_light`), only for a light the user named.
 
-This package sits below the autofocus loop (it imports nothing from
+:mod:`tdfd.light.simulated` (torch) is imported on first use of its names, so the
+hardware loop runs without torch. This package sits below the autofocus loop (it imports nothing from
 :mod:`tdfd.autofocus`). Errors: :class:`tdfd.errors.LightError` and its subclasses.
 """
 
@@ -26,7 +27,6 @@ from .base import ON, AssistLight
 from .command import CommandLight
 from .guard import DEFAULT_LIMITS, LightGuard, LightLimits, exposure
 from .serial_line import SerialLineLight, open_serial_line
-from .simulated import SIMULATED_PATTERNS, SimulatedLight
 from .spec import LightSpec, open_light, parse_light_spec
 
 __all__ = [
@@ -45,3 +45,11 @@ __all__ = [
     "open_serial_line",
     "parse_light_spec",
 ]
+
+
+def __getattr__(name: str):  # the simulated light needs torch: import it on first use
+    if name in ("SimulatedLight", "SIMULATED_PATTERNS"):
+        from . import simulated
+
+        return getattr(simulated, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
