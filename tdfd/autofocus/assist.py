@@ -10,7 +10,7 @@ One focus request with a light allowed:
 1. ``f1`` unlit at ``P_e1`` (the move to ``P_e2`` commanded at its exposure end, as in
    plain DFD). Its ROI texture over the noise floor
    (:func:`~tdfd.autofocus.sharpness.texture_snr`) decides:
-2. textured (``>= min_texture_snr``): plain DFD goes on (``f2`` unlit, estimate, ...):
+2. textured (``>= light_texture_snr``, default 1.2): plain DFD goes on (``f2`` unlit, estimate, ...):
    the same frames, commands and result as without a light;
 3. texture-less: ``f2`` **lit** at ``P_e2`` (then back to ``P_e1``), ``f1`` **lit** at
    ``P_e1``, estimate on the lit pair: three frames in all. The unlit ``f1`` is the
@@ -53,7 +53,7 @@ from ..errors import InputError
 from .aggregate import DepthAggregate, aggregate_depth
 from .dfd import DFDController
 from .lit_tiles import lit_tile_mask, subtract_ambient
-from .machine import Gen
+from .machine import Abort, Gen
 from .messages import Command, Estimation, Frame, Observation, State
 from .roi import Roi, roi_tile_mask
 from .sharpness import texture_snr
@@ -61,6 +61,7 @@ from .sharpness import texture_snr
 __all__ = ["AssistedDFDController", "LitPair"]
 
 log = logging.getLogger(__name__)
+
 
 
 @dataclasses.dataclass
@@ -96,6 +97,11 @@ class AssistedDFDController(DFDController):
         illumination: the pattern to ask for (``"coherent"``, ``"projector"`` on the bench;
             ``"on"`` for a real light), ``None``: no light (plain DFD).
         subtract_ambient: subtract the ambient frame from the lit ones before estimating.
+        light_texture_snr: the unlit ``f1``'s ROI texture over the noise floor below which
+            the pair is lit. A texture-less target reads about 1 (at most 1.08 over 60 bench
+            targets with sensor noise); a textured one can read lower than the pair check's
+            1.5 in ``f1`` alone when ``f1`` is blurred (a near target), and plain DFD does
+            better on it than a lit pair, hence 1.2.
         lit_k_noise, lit_rel: thresholds of :func:`~tdfd.autofocus.lit_tiles.lit_tile_mask`.
         lit_min_confidence: ROI confidence needed from a lit estimate (default: the
             controller's ``min_confidence``).
@@ -108,6 +114,7 @@ class AssistedDFDController(DFDController):
     """
 
     def __init__(self, camera: Camera, *, illumination: str | None = None, subtract_ambient: bool = False,
+                 light_texture_snr: float = 1.2,
                  lit_k_noise: float = 3.0, lit_rel: float = 0.05, lit_min_confidence: float | None = None,
                  ambient_pedestal: float = 0.02, **kwargs) -> None:
         super().__init__(camera, **kwargs)
@@ -117,6 +124,7 @@ class AssistedDFDController(DFDController):
             raise InputError(f"lit_min_confidence must be in [0, 1], got {lit_min_confidence}")
         self.illumination = illumination
         self.subtract_ambient = bool(subtract_ambient)
+        self.light_texture_snr = float(light_texture_snr)
         self.lit_k_noise, self.lit_rel = float(lit_k_noise), float(lit_rel)
         self.lit_min_confidence = lit_min_confidence
         self.ambient_pedestal = float(ambient_pedestal)
@@ -138,7 +146,7 @@ class AssistedDFDController(DFDController):
         if self._retry_lit and self._unlit_pair is not None:
             a1, a2 = self._unlit_pair  # the lens is still at P_e2 after the unlit f2
             self._retry_lit = False
-            return (yield from self._lit_pair(p1, LitPair(self.illumination, a1, a2, reason=self._retry_reason)))
+            return (yield from self._lit_or_unlit(p1, p2, LitPair(self.illumination, a1, a2, reason=self._retry_reason)))
         self.state = State.MOVE_F1
         yield from self._set_power(p1)
         self.state = State.CAPTURE_F1
@@ -149,15 +157,31 @@ class AssistedDFDController(DFDController):
         except InputError as exc:  # a tiny ROI: no texture check, plain DFD
             log.info("no texture check before the light: %s", exc)
             snr = math.inf
-        if snr >= self.min_texture_snr:
+        if snr >= self.light_texture_snr:
             self.state = State.CAPTURE_F2
             f2, _ = yield from self._capture("f2")
             self._unlit_pair = (f1, f2)
             return f1, f2
-        reason = f"texture-less target: ROI contrast {snr:.2f}x the noise floor in f1 (below {self.min_texture_snr:g}x)"
+        reason = f"texture-less target: ROI contrast {snr:.2f}x the noise floor in f1 (below {self.light_texture_snr:g}x)"
         log.info("%s: lighting the DFD pair (%s)", reason, self.illumination)
         self._unlit_pair = None
-        return (yield from self._lit_pair(p1, LitPair(self.illumination, f1, None, reason=reason)))
+        return (yield from self._lit_or_unlit(p1, p2, LitPair(self.illumination, f1, None, reason=reason)))
+
+    def _lit_or_unlit(self, p1: float, p2: float, lit: LitPair
+                      ) -> Generator[Command, Observation, tuple[Frame, Frame]]:
+        """The lit pair; if the light refuses or fails (a cap, a broken light), plain DFD's unlit pair."""
+        try:
+            return (yield from self._lit_pair(p1, lit))
+        except Abort as exc:
+            if exc.status != "failed" or "light" not in exc.reason.lower():
+                raise  # a halt, or a lens / camera failure: not the light's
+            log.warning("no lit frames (%s): going on unlit", exc.reason)
+            self.lit = None
+            self.min_confidence = self._base_min_confidence
+            self.result.fallback_reason = f"assist light unavailable: {exc.reason}"
+            pair = yield from super()._capture_pair(p1, p2)
+            self._unlit_pair = None  # the light is not tried again in this cycle
+            return pair
 
     def _lit_pair(self, p1: float, lit: LitPair) -> Generator[Command, Observation, tuple[Frame, Frame]]:
         """``f2`` lit at ``P_e2`` (where the lens is), then ``f1`` lit at ``P_e1``."""
