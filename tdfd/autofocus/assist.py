@@ -63,7 +63,6 @@ __all__ = ["AssistedDFDController", "LitPair"]
 log = logging.getLogger(__name__)
 
 
-
 @dataclasses.dataclass
 class LitPair:
     """What the controller knows about the lit pair of the present focus cycle.
@@ -104,7 +103,9 @@ class AssistedDFDController(DFDController):
             better on it than a lit pair, hence 1.2.
         lit_k_noise, lit_rel: thresholds of :func:`~tdfd.autofocus.lit_tiles.lit_tile_mask`.
         lit_min_confidence: ROI confidence needed from a lit estimate (default: the
-            controller's ``min_confidence``).
+            controller's ``min_confidence``). Measured on 100 texture-less bench targets
+            with the shipped model: 0.01 instead of its 0.003 sends two right lit estimates
+            (confidence 0.007) to contrast AF, which ends out of focus on them.
         ambient_pedestal: level added back after the subtraction (intensity units).
         **kwargs: :class:`~tdfd.autofocus.dfd.DFDController` options.
 
