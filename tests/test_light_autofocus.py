@@ -142,3 +142,28 @@ def test_bench_textured_target_is_not_lit(analytic):
         ref = bench.run_trial(0.6, "dfd", trial=1)
     assert light.switch_count == 0 and rec.extra["light"] is None
     assert (rec.frames, rec.final_power_dpt, rec.time_ms) == (ref.frames, ref.final_power_dpt, ref.time_ms)
+
+
+@pytest.mark.parametrize("amplitude,retried", [(0.0012, True), (0.2, False)])
+def test_untrusted_unlit_estimate_is_retried_lit_only_on_a_weak_texture(amplitude, retried):
+    import cv2
+
+    from tdfd.autofocus.roi import Roi
+    from tdfd.autofocus.sharpness import pair_texture_snr
+
+    rng = np.random.default_rng(5)
+    tex = 0.5 + cv2.GaussianBlur(amplitude * rng.standard_normal(HW), (0, 0), 2.0) / 0.14  # unit-ish variance
+    frames = [_noise(rng, tex, 0.002) for _ in range(2)]
+    snr = pair_texture_snr(*frames, Roi.centre(HW))
+    assert (1.2 < snr < 3.0) if retried else snr > 3.0
+    it = iter(frames * 3)
+    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32))
+    cmds, est = _run_until_estimate(ctrl, lambda cmd: next(it))
+    assert [c.light for c in cmds if isinstance(c, Capture)] == [None, None]  # textured in f1: unlit pair
+    h, w = ((s - 64) // 32 + 1 for s in est.image_f1.shape)
+    cmd = ctrl.step(Estimation(np.full((h, w), 0.6), np.full((h, w), 1e-4), 64, 32, t_s=1.0))  # not trusted
+    if retried:
+        assert isinstance(cmd, Capture) and cmd.light == "coherent" and cmd.tag == "f2 lit"
+        assert cmd.then_power_dpt == CAM.lens_powers_dpt[0]
+    else:
+        assert ctrl.state.name == "CONTRAST" and getattr(cmd, "light", None) is None
