@@ -58,3 +58,28 @@ def test_sim_uniform_scene_with_the_coherent_light(capsys):
     out = capsys.readouterr().out
     assert rc == 0
     assert "in focus (blur < 1 px): 2/2" in out and "assist light: lit 2 of 2 DFD trials" in out
+
+
+def test_sigterm_runs_the_interrupt_exit_path(tmp_path):
+    import subprocess
+    import sys
+
+    state = tmp_path / "laser"
+    code = f"""
+import os, pathlib, signal, sys
+from tdfd.autofocus.light_cli import sigterm_as_interrupt
+from tdfd.light import CommandLight, LightGuard
+w = lambda t: [sys.executable, '-c', f"import pathlib; pathlib.Path({str(state)!r}).write_text({{t!r}})"]
+guard = LightGuard(CommandLight(w('on'), w('off')))
+try:
+    with sigterm_as_interrupt(), guard.request():
+        guard.switch_on()
+        assert pathlib.Path({str(state)!r}).read_text() == 'on'
+        os.kill(os.getpid(), signal.SIGTERM)
+        signal.pause()
+except KeyboardInterrupt:
+    print('interrupted', pathlib.Path({str(state)!r}).read_text())
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "interrupted off"

@@ -16,6 +16,7 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -28,7 +29,15 @@ from ..driver import Faults
 from ..errors import InputError
 from .estimators import default_model_path, load_estimator
 from .hardware import run_hardware
-from .light_cli import add_light_arguments, check_light_args, light_limits, light_summary, open_named_light, sim_light
+from .light_cli import (
+    add_light_arguments,
+    check_light_args,
+    light_limits,
+    light_summary,
+    open_named_light,
+    sigterm_as_interrupt,
+    sim_light,
+)
 from .report import build_report, format_summary, format_table, write_report
 from .roi import Roi
 from .sim import DEFAULT_READOUT_HW, CameraTiming, Scene, SensorNoise, SimBench, trial_depths
@@ -300,13 +309,16 @@ def _run_hardware(args: argparse.Namespace) -> int:
         raise InputError("--method both is for the simulated bench")
     est = _estimator(args, method == "dfd")
     light = open_named_light(args)  # before the lens: a missing light port leaves the lens untouched
+    on_term = sigterm_as_interrupt() if light is not None else contextlib.nullcontext()  # kill -> Ctrl-C's exit path
     try:
-        res = run_hardware(args.port, args.camera, est, method=method, roi=_roi(args), verify=args.verify,
-                           dry_run=args.dry_run, continuous=args.continuous,
-                           duration_s=args.duration if args.continuous else None, settle_s=args.settle_ms / 1e3,
-                           linearise=args.linearise, white_level=args.white_level, min_confidence=args.min_confidence,
-                           contrast={"strategy": args.contrast_strategy, "step_dpt": args.contrast_step},
-                           light=light, illumination=args.illumination, light_limits=light_limits(args))
+        with on_term:
+            res = run_hardware(args.port, args.camera, est, method=method, roi=_roi(args), verify=args.verify,
+                               dry_run=args.dry_run, continuous=args.continuous,
+                               duration_s=args.duration if args.continuous else None, settle_s=args.settle_ms / 1e3,
+                               linearise=args.linearise, white_level=args.white_level,
+                               min_confidence=args.min_confidence,
+                               contrast={"strategy": args.contrast_strategy, "step_dpt": args.contrast_step},
+                               light=light, illumination=args.illumination, light_limits=light_limits(args))
     finally:
         if light is not None:
             light.close()

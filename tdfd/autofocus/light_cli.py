@@ -19,14 +19,17 @@ does not exist, ``--assist-light`` on the bench, ``--illumination`` on hardware 
 from __future__ import annotations
 
 import argparse
-from typing import Any
+import contextlib
+import signal
+import threading
+from typing import Any, Iterator
 
 from ..errors import InputError
 from ..light.guard import DEFAULT_LIMITS, LightLimits
 from ..light.spec import SPEC_FORMS, parse_light_spec
 
 __all__ = ["ILLUMINATIONS", "add_light_arguments", "check_light_args", "light_limits", "sim_light",
-           "open_named_light", "light_summary"]
+           "open_named_light", "light_summary", "sigterm_as_interrupt"]
 
 #: values of ``--illumination``.
 ILLUMINATIONS = ("coherent", "projector", "none")
@@ -109,3 +112,22 @@ def light_summary(records: list) -> str | None:
     share = f"; pattern on {100 * sum(tiles) / len(tiles):.0f} % of the ROI tiles (mean)" if tiles else ""
     return (f"assist light: lit {len(lit)} of {len(used)} DFD trials, on {on_ms:.1f} ms in all"
             f"{'; ambient subtracted' if sub else ''}{share}")
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Turn SIGTERM into ``KeyboardInterrupt`` for the block (main thread only), so that a
+    ``kill`` runs the same exit path as Ctrl-C: the light guard's ``finally`` switches the
+    light off (a default SIGTERM ends the process without ``finally`` or ``atexit``)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):  # noqa: ANN001, ARG001
+        raise KeyboardInterrupt("SIGTERM")
+
+    before = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, before)
