@@ -83,3 +83,9 @@ except KeyboardInterrupt:
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "interrupted off"
+
+
+def test_subtract_ambient_without_a_light_is_refused(capsys):
+    rc = main(["autofocus", "--sim", "--subtract-ambient", "--trials", "1"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and "--subtract-ambient needs a light" in err

@@ -68,6 +68,11 @@ def check_light_args(args: argparse.Namespace) -> None:
     if not args.sim and args.illumination is not None and args.assist_light is None:
         raise InputError("--illumination on hardware needs the light named with --assist-light "
                          f"({SPEC_FORMS})")
+    lit = args.illumination not in (None, "none") if args.sim else (args.assist_light is not None
+                                                                     and args.illumination != "none")
+    if args.subtract_ambient and not lit:
+        raise InputError("--subtract-ambient needs a light (--illumination coherent|projector on the bench, "
+                         "--assist-light on hardware)")
     light_limits(args)
 
 
