@@ -22,6 +22,7 @@ BENCHMARKS = {
     "bound": "benchmarks.bench_bound",
     "onnx": "benchmarks.bench_onnx",
     "autofocus": "benchmarks.bench_autofocus",
+    "assist_light": "benchmarks.bench_assist_light",
     "paper": "benchmarks.paper_experiment",
     "overview": "benchmarks.overview_figure",
 }

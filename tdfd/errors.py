@@ -27,6 +27,13 @@ __all__ = [
     "LensStateError",
     "ForbiddenCommandError",
     "UnsupportedFirmwareError",
+    "LightError",
+    "LightSpecError",
+    "LightConnectionError",
+    "ModemLineError",
+    "LightVerifyError",
+    "LightCommandError",
+    "LightSafetyError",
 ]
 
 
@@ -124,3 +131,37 @@ class ForbiddenCommandError(DriverError, ValueError):
 
 class UnsupportedFirmwareError(DriverError):
     """A firmware type whose encoding the protocol facts do not document (e.g. focal power on ``F``)."""
+
+
+# ---------------------------------------------------------------------- assist light
+class LightError(TdfdError, RuntimeError):
+    """Base class of assist-light errors (:mod:`tdfd.light`)."""
+
+
+class LightSpecError(InputError):
+    """An ``--assist-light`` text that is not ``serial:PORT:rts``, ``serial:PORT:dtr`` or ``cmd:ON,OFF``."""
+
+
+class LightConnectionError(LightError, ConnectionError):
+    """The assist light's serial port does not exist, cannot be opened, or vanished."""
+
+
+class ModemLineError(LightConnectionError):
+    """The port refuses modem-line control (RTS/DTR).
+
+    A pseudo-terminal, or a port that is not a serial adapter, answers the modem-line
+    ioctls with ``OSError`` errno 25 (ENOTTY): usually the wrong port was named.
+    """
+
+
+class LightVerifyError(LightError):
+    """The light's control line did not read back the state it was switched to."""
+
+
+class LightCommandError(LightError):
+    """A light command (``cmd:ON,OFF``) could not be run, timed out or exited non-zero."""
+
+
+class LightSafetyError(LightError):
+    """The light interlock refused to switch on, or switched the light off: the on-time
+    cap per focus request or the duty-cycle cap was reached, or no light was named."""

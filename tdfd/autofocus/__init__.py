@@ -20,6 +20,9 @@ Layers, bottom to top; a module imports only from its own layer or the ones belo
 
    * :mod:`~tdfd.autofocus.contrast`: :class:`ContrastSearch`, :class:`ContrastController`.
    * :mod:`~tdfd.autofocus.dfd`: :class:`DFDController` (falls back to the contrast search).
+   * :mod:`~tdfd.autofocus.assist`: ``AssistedDFDController``, DFD that lights the pair of a
+     texture-less target with an assist light (:mod:`tdfd.light`), pooling the lit tiles
+     (:mod:`~tdfd.autofocus.lit_tiles`).
 
 3. Plants and what they plug in
 
@@ -33,7 +36,8 @@ Layers, bottom to top; a module imports only from its own layer or the ones belo
 4. Reporting and CLI
 
    * :mod:`~tdfd.autofocus.report`: the autofocus report of CONTRACT.md section 3.
-   * :mod:`~tdfd.autofocus.cli`: ``tdfd autofocus``.
+   * :mod:`~tdfd.autofocus.cli`: ``tdfd autofocus``; :mod:`~tdfd.autofocus.light_cli`: its
+     assist-light options.
 
 Heavy dependencies (torch, onnxruntime, OpenCV) are imported only where used.
 """

@@ -9,11 +9,14 @@ Examples::
     tdfd autofocus --sim --continuous --duration 2        # moving target
     tdfd autofocus --port /dev/ttyACM0 --camera 0         # real lens and camera
     tdfd autofocus --camera 0 --dry-run                   # capture + estimate, lens untouched
+    tdfd autofocus --sim --scene uniform --illumination coherent      # active DFD (laser pattern)
+    tdfd autofocus --port /dev/ttyACM0 --camera 0 --assist-light serial:/dev/ttyUSB0:rts
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -21,10 +24,20 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ..camera import Camera
 from ..driver import Faults
 from ..errors import InputError
 from .estimators import default_model_path, load_estimator
 from .hardware import run_hardware
+from .light_cli import (
+    add_light_arguments,
+    check_light_args,
+    light_limits,
+    light_summary,
+    open_named_light,
+    sigterm_as_interrupt,
+    sim_light,
+)
 from .report import build_report, format_summary, format_table, write_report
 from .roi import Roi
 from .sim import DEFAULT_READOUT_HW, CameraTiming, Scene, SensorNoise, SimBench, trial_depths
@@ -118,6 +131,7 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     hw = p.add_argument_group("real hardware")
     hw.add_argument("--linearise", action="store_true", help="undo an sRGB gamma (prefer a camera in raw/linear mode)")
     hw.add_argument("--white-level", type=float, default=None, help="raw value of white (default from the dtype)")
+    add_light_arguments(p)
     p.set_defaults(func=run)
     return p
 
@@ -148,6 +162,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--sim runs the simulated bench: drop --port/--camera (or drop --sim)")
     if not args.sim and not args.camera:
         raise InputError("give --sim for the simulated bench, or --camera (and --port) for real hardware")
+    check_light_args(args)  # before anything is opened
     if args.sim:
         return _run_sim(args)
     return _run_hardware(args)
@@ -192,7 +207,9 @@ def _run_sim(args: argparse.Namespace) -> int:
     controller = {"verify": args.verify, "min_texture_snr": args.min_texture_snr}
     if args.min_confidence is not None:
         controller["min_confidence"] = args.min_confidence
-    bench = SimBench(estimator=est, readout_hw=readout, roi=roi, timing=timing,
+    light, light_controller = sim_light(args, est.camera if est is not None else Camera.preset("reference"))
+    controller.update(light_controller)
+    bench = SimBench(light=light, light_limits=light_limits(args), estimator=est, readout_hw=readout, roi=roi, timing=timing,
                      noise=SensorNoise(enabled=not args.no_noise), settle_s=args.settle_ms / 1e3,
                      compute_s=args.compute, seed=args.seed, psf=_psf(args.psf), scene=scene,
                      faults=_faults(args.faults, args.seed), controller=controller, contrast=contrast)
@@ -239,12 +256,16 @@ def _run_sim(args: argparse.Namespace) -> int:
             (getattr(est, "min_confidence", None) if est is not None else None),
             "min_texture_snr": args.min_texture_snr,
             "lens_range_dpt": list(bench.lens.power_limits_dpt),
+            "illumination": args.illumination, "subtract_ambient": args.subtract_ambient,
         }
     report = build_report(records, settings)
     print()
     print(format_table(records))
     print()
     print(format_summary(report["summary"]))
+    lit = light_summary(records)
+    if lit:
+        print(lit)
     if args.json:
         write_report(args.json, records, settings)
         print(f"report written to {args.json}")
@@ -287,11 +308,20 @@ def _run_hardware(args: argparse.Namespace) -> int:
     if method == "both":
         raise InputError("--method both is for the simulated bench")
     est = _estimator(args, method == "dfd")
-    res = run_hardware(args.port, args.camera, est, method=method, roi=_roi(args), verify=args.verify,
-                       dry_run=args.dry_run, continuous=args.continuous,
-                       duration_s=args.duration if args.continuous else None, settle_s=args.settle_ms / 1e3,
-                       linearise=args.linearise, white_level=args.white_level, min_confidence=args.min_confidence,
-                       contrast={"strategy": args.contrast_strategy, "step_dpt": args.contrast_step})
+    light = open_named_light(args)  # before the lens: a missing light port leaves the lens untouched
+    on_term = sigterm_as_interrupt() if light is not None else contextlib.nullcontext()  # kill -> Ctrl-C's exit path
+    try:
+        with on_term:
+            res = run_hardware(args.port, args.camera, est, method=method, roi=_roi(args), verify=args.verify,
+                               dry_run=args.dry_run, continuous=args.continuous,
+                               duration_s=args.duration if args.continuous else None, settle_s=args.settle_ms / 1e3,
+                               linearise=args.linearise, white_level=args.white_level,
+                               min_confidence=args.min_confidence,
+                               contrast={"strategy": args.contrast_strategy, "step_dpt": args.contrast_step},
+                               light=light, illumination=args.illumination, light_limits=light_limits(args))
+    finally:
+        if light is not None:
+            light.close()
     dt = res.time_to_focus_s
     print(f"status: {res.status}; method: {res.method}; power: "
           f"{'-' if res.power_dpt is None else f'{res.power_dpt:.3f} dpt'}; depth: "

@@ -155,12 +155,7 @@ class DFDController(StateMachine):
             self.state = State.CAPTURE_F2
             f2, _ = yield from self._capture("f2")
         else:
-            self.state = State.MOVE_F1
-            yield from self._set_power(p1)
-            self.state = State.CAPTURE_F1
-            f1, _ = yield from self._capture("f1", then_power_dpt=p2)
-            self.state = State.CAPTURE_F2
-            f2, _ = yield from self._capture("f2")
+            f1, f2 = yield from self._capture_pair(p1, p2)
         self.state = State.ESTIMATE
         roi = self._roi_for(f1.image.shape[-2:])
         offset = (0, 0)
@@ -175,8 +170,7 @@ class DFDController(StateMachine):
             raise Abort(f"depth estimation failed: {obs.error}")
         assert isinstance(obs, Estimation)
         self._note_time(obs.t_s)
-        mask = roi_tile_mask(roi, obs.depth_m.shape, obs.tile, obs.stride, offset)
-        agg = aggregate_depth(obs.depth_m, obs.confidence, mask)
+        agg = self._aggregate(obs, roi, offset)
         self.last_aggregate = agg
         res.confidence = agg.confidence
         res.estimated_depth_m = agg.depth_m
@@ -234,6 +228,21 @@ class DFDController(StateMachine):
                 yield from self._contrast(power)
                 return None
         return f1, f2
+
+    def _capture_pair(self, p1: float, p2: float) -> Generator[Command, Observation, tuple[Frame, Frame]]:
+        """The DFD pair of one cycle: ``P_e1``, ``f1`` (then ``P_e2``), ``f2`` (a policy above may light it)."""
+        self.state = State.MOVE_F1
+        yield from self._set_power(p1)
+        self.state = State.CAPTURE_F1
+        f1, _ = yield from self._capture("f1", then_power_dpt=p2)
+        self.state = State.CAPTURE_F2
+        f2, _ = yield from self._capture("f2")
+        return f1, f2
+
+    def _aggregate(self, obs: Estimation, roi: Roi, offset: tuple[int, int]) -> DepthAggregate:
+        """The ROI depth from the estimate on the tile grid (a policy above may pool other tiles)."""
+        mask = roi_tile_mask(roi, obs.depth_m.shape, obs.tile, obs.stride, offset)
+        return aggregate_depth(obs.depth_m, obs.confidence, mask)
 
     def _contrast(self, centre_dpt: float | None) -> Gen:
         self.state = State.CONTRAST

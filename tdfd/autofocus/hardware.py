@@ -34,6 +34,8 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InputError, TdfdError
 from ..frames import raw_to_linear, srgb_to_linear
+from ..light.guard import DEFAULT_LIMITS, LightGuard, LightLimits, exposure
+from .assist import AssistedDFDController
 from .contrast import ContrastController
 from .dfd import DFDController
 from .estimators import suggested_min_confidence
@@ -160,11 +162,13 @@ class HardwarePlant:
         sleep: sleep function (s).
         readback: read every set-point back (``PrDA``; ``PwDA`` has no reply, so a lost
             command is only caught this way); costs about 2 ms per command.
+        light_guard: the guarded assist light; a lit ``Capture`` has it on for that frame's
+            read only (``None``: no light named, a lit capture fails).
     """
 
     def __init__(self, camera: Any, lens: Any | None, estimator: Estimator | None, duration_s: float | None = None,
                  clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
-                 readback: bool = True) -> None:
+                 readback: bool = True, light_guard: LightGuard | None = None) -> None:
         self.camera, self.lens, self.estimator = camera, lens, estimator
         self.clock, self.sleep = clock, sleep
         self.t0 = clock()
@@ -173,6 +177,7 @@ class HardwarePlant:
         self.lens_ready = self.t0
         self.power_dpt = float("nan")  # last commanded power
         self.halt_requested = False
+        self.light_guard = light_guard
 
     def now(self) -> float:
         return self.clock()
@@ -203,7 +208,8 @@ class HardwarePlant:
             self.sleep(wait)
         start, power = self.clock(), self.power_dpt
         try:
-            image = self.camera.read()
+            with exposure(self.light_guard, cmd.light):  # a lit frame: the light on for this read only
+                image = self.camera.read()
         except TdfdError as exc:
             lens = self._command(cmd.then_power_dpt, cmd.settle_s) if cmd.then_power_dpt is not None else None
             return CaptureFault(cmd.tag, str(exc), self.clock(), lens=lens)
@@ -230,7 +236,8 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
                  white_level: float | None = None,
                  temperature_limits_c: tuple[float, float] = HARDWARE_TEMPERATURE_LIMITS_C,
                  contrast: dict | None = None, camera: Any | None = None, lens: Any | None = None,
-                 min_confidence: float | None = None) -> AFResult:
+                 min_confidence: float | None = None, light: Any | None = None, illumination: str | None = None,
+                 light_limits: LightLimits = DEFAULT_LIMITS) -> AFResult:
     """Autofocus once (or continuously) on real hardware.
 
     Args:
@@ -248,6 +255,13 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
         contrast: contrast-search options.
         min_confidence: ROI-confidence threshold (default: the estimator's suggestion).
         camera, lens: already-open objects to use instead of opening ``camera_source`` / ``port``.
+        light: the assist light the user named (an open :class:`~tdfd.light.base.AssistLight`,
+            see :func:`tdfd.light.open_light`), used by DFD through a
+            :class:`~tdfd.light.guard.LightGuard` on :func:`time.monotonic` (watchdog on) when the
+            target is texture-less; ``None``: never lit. The caller closes it.
+        illumination: ``"none"`` keeps a named light off; any other value (or ``None``)
+            lets DFD use it. Needs ``light``.
+        light_limits: the light's on-time and duty caps.
 
     Returns:
         The :class:`~tdfd.autofocus.messages.AFResult`; lens and camera faults end up in it
@@ -266,6 +280,9 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
         raise InputError("DFD needs a depth estimator (--model)")
     if port is None and lens is None and not dry_run:
         raise InputError("give the lens's serial port (--port), or use --dry-run")
+    if illumination is not None and light is None:
+        raise InputError("--illumination on hardware needs the light named with --assist-light")
+    pattern = None if light is None or illumination == "none" else light.patterns[0]
     own_cam = camera is None
     cam = camera if camera is not None else OpenCVCamera(camera_source, white_level=white_level, linearise=linearise)
     own_lens = lens is None and port is not None
@@ -284,21 +301,28 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
         optics = estimator.camera if estimator is not None else Camera.preset("reference")
         ctrl: StateMachine
         if method == "dfd":
-            ctrl = DFDController(optics, roi=roi, settle_s=settle_s, verify=verify, dry_run=dry_run,
-                                 continuous=continuous, power_limits_dpt=limits, contrast=contrast,
-                                 grid=(estimator.tile, estimator.stride),
-                                 min_confidence=suggested_min_confidence(estimator) if min_confidence is None
-                                 else min_confidence)
+            dfd_kwargs = dict(roi=roi, settle_s=settle_s, verify=verify, dry_run=dry_run, continuous=continuous,
+                              power_limits_dpt=limits, contrast=contrast, grid=(estimator.tile, estimator.stride),
+                              min_confidence=suggested_min_confidence(estimator) if min_confidence is None
+                              else min_confidence)
+            ctrl = (AssistedDFDController(optics, illumination=pattern, **dfd_kwargs) if pattern is not None
+                    else DFDController(optics, **dfd_kwargs))
         else:
             if dry_run:
                 raise InputError("a contrast-detect search must move the lens: no dry run")
             ctrl = ContrastController(optics, roi=roi, settle_s=settle_s, power_limits_dpt=limits, **(contrast or {}))
-        plant = HardwarePlant(cam, None if dry_run else lens, estimator, duration_s=duration_s if continuous else None)
+        guard = LightGuard(light, light_limits) if pattern is not None else None
+        plant = HardwarePlant(cam, None if dry_run else lens, estimator, duration_s=duration_s if continuous else None,
+                              light_guard=guard)
         try:
-            return drive(ctrl, plant)
-        except KeyboardInterrupt:
-            plant.halt_requested = True
-            return drive_to_halt(ctrl, plant)
+            try:
+                return drive(ctrl, plant)
+            except KeyboardInterrupt:
+                plant.halt_requested = True
+                return drive_to_halt(ctrl, plant)
+        finally:
+            if guard is not None:  # off on every exit path (the exposure blocks did it already)
+                guard.force_off("end of the focus request")
     finally:
         if own_lens and lens is not None:
             lens.close()

@@ -190,14 +190,14 @@ class StateMachine:
                         self.lens_retries + 1, last)
         raise Abort(f"lens did not accept {power_dpt:.3f} dpt after {self.lens_retries + 1} attempts: {last}")
 
-    def _capture(self, tag: str, then_power_dpt: float | None = None
+    def _capture(self, tag: str, then_power_dpt: float | None = None, light: str | None = None
                  ) -> Generator[Command, Observation, tuple[Frame, LensAck | None]]:
         """``Capture`` with bounded retries; a failed ``then`` move is retried with ``SetPower``."""
         last = ""
         for attempt in range(self.capture_retries + 1):
             if then_power_dpt is not None:
                 self.result.lens_commands += 1
-            obs = yield Capture(tag, then_power_dpt, self.settle_s)
+            obs = yield Capture(tag, then_power_dpt, self.settle_s, light)
             self._halt(obs)
             self.result.frames += 1 if isinstance(obs, Frame) else 0
             lens = obs.lens

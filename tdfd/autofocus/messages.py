@@ -67,11 +67,15 @@ class Capture:
 
     If ``then_power_dpt`` is given, the lens is commanded there as soon as the exposure
     ends (camera exposure-end event), overlapping settling with the frame read-out.
+    ``light`` names the assist-light pattern to expose with (the plant switches it on
+    through its :class:`~tdfd.light.guard.LightGuard` for this exposure only); ``None``:
+    unlit.
     """
 
     tag: str
     then_power_dpt: float | None = None
     settle_s: float = 0.0
+    light: str | None = None
 
 
 @dataclass(frozen=True)

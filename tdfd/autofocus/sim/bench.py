@@ -38,6 +38,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from typing import Any, Callable, Sequence
@@ -46,6 +47,8 @@ import numpy as np
 
 from ...camera import Camera
 from ...errors import InputError
+from ...light.guard import DEFAULT_LIMITS, LightGuard, LightLimits
+from ..assist import AssistedDFDController
 from ..contrast import ContrastController
 from ..dfd import DFDController
 from ..estimators import suggested_min_confidence
@@ -95,6 +98,11 @@ class SimBench:
         controller: extra keyword arguments for :class:`DFDController`.
         contrast: keyword arguments for the contrast search (strategy, step, ...).
         texture_families: texture families of the default scenes (see :meth:`Scene.texture_plane`).
+        light: the bench's assist light (a :class:`~tdfd.light.simulated.SimulatedLight`),
+            switched only through :attr:`light_guard` (on the simulated clock); DFD
+            trials asked with ``illumination=PATTERN`` (controller option) run the
+            :class:`~tdfd.autofocus.assist.AssistedDFDController`. ``None``: no light.
+        light_limits: the light's on-time and duty caps.
     """
 
     def __init__(self, camera: Camera | None = None, estimator: Estimator | None = None,
@@ -102,7 +110,8 @@ class SimBench:
                  timing: CameraTiming = CameraTiming(), noise: SensorNoise = SensorNoise(), settle_s: float = 0.015,
                  compute_s: float | str = "calibrated", seed: int = 0, psf: Any = "gaussian", scene: Scene | None = None,
                  faults: Any | None = None, driver_timeout_s: float = 0.1, controller: dict | None = None,
-                 contrast: dict | None = None, texture_families: Sequence[str] | None = None) -> None:
+                 contrast: dict | None = None, texture_families: Sequence[str] | None = None,
+                 light: Any | None = None, light_limits: LightLimits = DEFAULT_LIMITS) -> None:
         if camera is None:
             camera = estimator.camera if estimator is not None else Camera.preset("reference")
         self.camera, self.estimator = camera, estimator
@@ -117,6 +126,8 @@ class SimBench:
         self.contrast_kwargs = dict(contrast or {})
         self.texture_families = tuple(texture_families) if texture_families else None
         self.clock = SimClock()
+        self.light = light
+        self.light_guard = LightGuard(light, light_limits, clock=self.clock) if light is not None else None
         self.rng = np.random.default_rng(self.seed)
         self._phase_rng = np.random.default_rng([self.seed, 1])
         self.lens: EmulatedLens | None = None
@@ -183,6 +194,9 @@ class SimBench:
                           grid=grid, min_confidence=suggested_min_confidence(self.estimator))
             kwargs.update(self.controller_kwargs)
             kwargs.update(overrides)
+            if kwargs.get("illumination") is not None:
+                return AssistedDFDController(self.camera, **kwargs)
+            kwargs.pop("illumination", None)
             return DFDController(self.camera, **kwargs)
         if method == "contrast":
             kwargs = dict(roi=self.roi, settle_s=self.settle_s, power_limits_dpt=limits, **self.contrast_kwargs)
@@ -193,9 +207,14 @@ class SimBench:
     def _plant(self, scene: Scene, halt_at_s: float | None = None,
                on_time: Callable[[float], None] | None = None) -> BenchPlant:
         assert self.lens is not None
-        cam = VirtualCamera(self.camera, scene, self.lens.optical_power_at, self.timing, self.noise, self.rng, psf=self.psf)
+        cam = VirtualCamera(self.camera, scene, self.lens.optical_power_at, self.timing, self.noise, self.rng, psf=self.psf,
+                            light=self.light)
         return BenchPlant(self.clock, self.lens, cam, self.estimator, self.compute_charge_s, halt_at_s=halt_at_s,
-                          on_time=on_time)
+                          on_time=on_time, light_guard=self.light_guard)
+
+    def _light_request(self) -> contextlib.AbstractContextManager:
+        """One focus request for the light guard (fresh on-time budget; the light off at its end)."""
+        return self.light_guard.request() if self.light_guard is not None else contextlib.nullcontext()
 
     def run_trial(self, target_m: float, method: str = "dfd", trial: int = 0, uniform: bool = False,
                   idle_s: float = 0.1, **controller: Any) -> TrialRecord:
@@ -220,12 +239,17 @@ class SimBench:
         self.last_plant = plant
         ctrl = self.make_controller(method, **controller)
         self.lens.set_faults(self.faults)
+        on_before = self.light_guard.total_on_s if self.light_guard is not None else 0.0
         try:
-            result = drive(ctrl, plant)
+            with self._light_request():
+                result = drive(ctrl, plant)
         finally:
             self.lens.set_faults(None)
         rec = self._record(result, target, method, plant, trial)
         rec.scene = scene.name
+        if isinstance(ctrl, AssistedDFDController):
+            rec.extra.update(ctrl.lit_summary())
+            rec.extra["light_on_ms"] = (self.light_guard.total_on_s - on_before) * 1e3 if self.light_guard else 0.0
         return rec
 
     def _record(self, result: AFResult, target: float, requested: str, plant: BenchPlant, trial: int) -> TrialRecord:
@@ -298,7 +322,8 @@ class SimBench:
         ctrl = self.make_controller("dfd", continuous=True, **controller)
         self.lens.set_faults(self.faults)
         try:
-            result = drive(ctrl, plant)
+            with self._light_request():
+                result = drive(ctrl, plant)
         finally:
             self.lens.set_faults(None)
         rows = []

@@ -30,26 +30,32 @@ class VirtualCamera:
             power-exponential ``beta``).
         mu: true blur constant in px/m (default ``camera.mu_px_per_m``).
         threads: torch threads while rendering (restored afterwards; ``None``: unchanged).
+        light: a :class:`~tdfd.light.simulated.SimulatedLight` lighting the scene while it
+            is on (the scene image is then the albedo, :meth:`SimulatedLight.radiance`);
+            ``None``: the scene as it is.
     """
 
     def __init__(self, camera: Camera, scene: Scene, power_at: Callable[[float], float],
                  timing: CameraTiming = CameraTiming(), noise: SensorNoise = SensorNoise(),
                  rng: np.random.Generator | None = None, psf: Any = "gaussian", mu: float | None = None,
-                 threads: int | None = 1) -> None:
+                 threads: int | None = 1, light: Any | None = None) -> None:
         self.camera, self.scene, self.power_at = camera, scene, power_at
         self.timing, self.noise = timing, noise
         self.rng = rng if rng is not None else np.random.default_rng(0)
         self.psf, self.mu, self.threads = psf, mu, threads
         self.last_start_s: float | None = None
-        self._cache: tuple[Scene, Any, Any] | None = None
+        self.light = light
+        self._cache: tuple[Any, Any, Any] | None = None
 
     def _tensors(self):
         import torch
 
-        key = self.scene
-        if self._cache is None or self._cache[0] is not key:
+        pattern = self.light.pattern if self.light is not None else None
+        key = (self.scene, pattern)
+        if self._cache is None or self._cache[0][0] is not self.scene or self._cache[0][1] != pattern:
+            radiance = self.scene.sharp if self.light is None else self.light.radiance(self.scene.sharp, self.scene.depth_m)
             # numpy does the dtype conversion: no torch thread pool involved
-            sharp = torch.from_numpy(np.ascontiguousarray(self.scene.sharp, dtype=np.float32))[None, None]
+            sharp = torch.from_numpy(np.ascontiguousarray(radiance, dtype=np.float32))[None, None]
             depth = torch.from_numpy(np.ascontiguousarray(self.scene.depth_m, dtype=np.float32))[None, None]
             self._cache = (key, sharp, depth)
         return self._cache[1], self._cache[2]

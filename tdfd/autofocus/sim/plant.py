@@ -9,6 +9,7 @@ from typing import Callable
 import numpy as np
 
 from ...errors import InputError, TdfdError
+from ...light.guard import LightGuard, exposure
 from ..interfaces import Estimator
 from ..messages import Capture, CaptureFault, Estimate, Estimation, EstimateFault, Frame, LensAck, LensFault, SetPower
 from .camera import VirtualCamera
@@ -31,12 +32,15 @@ class BenchPlant:
         halt_at_s: simulated time at which :meth:`should_halt` turns true (continuous mode).
         on_time: called with the simulated time whenever it advances past a frame
             (continuous mode moves the target with it).
+        light_guard: the guarded assist light; a lit ``Capture`` has it on from the
+            exposure's start to its end only (``None``: no light, a lit capture fails).
     """
 
     def __init__(self, clock: SimClock, lens: EmulatedLens, camera: VirtualCamera, estimator: Estimator | None,
                  compute_s: float | str = "measured", halt_at_s: float | None = None,
-                 on_time: Callable[[float], None] | None = None) -> None:
+                 on_time: Callable[[float], None] | None = None, light_guard: LightGuard | None = None) -> None:
         self.clock, self.lens, self.camera, self.estimator = clock, lens, camera, estimator
+        self.light_guard = light_guard
         if compute_s != "measured" and not (isinstance(compute_s, (int, float)) and compute_s >= 0):
             raise InputError(f"compute_s must be 'measured' or a time >= 0 (s), got {compute_s!r}")
         self.compute_s = compute_s
@@ -69,10 +73,14 @@ class BenchPlant:
         self.clock.advance_to(start)
         if self.on_time is not None:
             self.on_time(start)
-        image, optical = self.camera.expose(start)
-        self.frames.append((start, optical, cmd.tag))
         end = start + timing.exposure_s
-        self.clock.advance_to(end)
+        try:
+            with exposure(self.light_guard, cmd.light, timing.exposure_s):
+                image, optical = self.camera.expose(start)
+                self.clock.advance_to(end)
+        except TdfdError as exc:  # the light refused or failed: it is off, no frame
+            return CaptureFault(cmd.tag, f"{type(exc).__name__}: {exc}", self.clock.now())
+        self.frames.append((start, optical, cmd.tag))
         lens = None
         if cmd.then_power_dpt is not None:
             lens = self._command(cmd.then_power_dpt, cmd.settle_s)

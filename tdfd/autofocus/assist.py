@@ -1,0 +1,262 @@
+r"""The assist-light policy: active DFD for texture-less targets (paper sec. 2.1 and 4).
+
+:class:`AssistedDFDController` is a :class:`~tdfd.autofocus.dfd.DFDController` that may ask
+for frames lit by an assist light (``Capture(..., light=PATTERN)``); the plant switches
+the light through its :class:`~tdfd.light.guard.LightGuard`, on for that exposure only.
+The controller itself stays pure: it never touches a light.
+
+One focus request with a light allowed:
+
+1. ``f1`` unlit at ``P_e1`` (the move to ``P_e2`` commanded at its exposure end, as in
+   plain DFD). Its ROI texture over the noise floor
+   (:func:`~tdfd.autofocus.sharpness.texture_snr`) decides:
+2. textured (``>= light_texture_snr``, default 1.2): plain DFD goes on (``f2`` unlit, estimate, ...):
+   the same frames, commands and result as without a light;
+3. texture-less: ``f2`` **lit** at ``P_e2`` (then back to ``P_e1``), ``f1`` **lit** at
+   ``P_e1``, estimate on the lit pair: three frames in all. The unlit ``f1`` is the
+   ambient frame at the same lens power as the lit ``f1``:
+
+   * **lit-tile pooling**: the ROI depth is aggregated over the tiles the pattern covers
+     only (:func:`~tdfd.autofocus.lit_tiles.lit_tile_mask` of lit minus ambient ``f1``),
+     so tiles without a pattern edge give no depth, confident or not; no lit tile in
+     the ROI (the pattern missed it, or it is too dim) is a low-confidence estimate:
+     contrast-detect AF takes over;
+   * **ambient subtraction** (``subtract_ambient=True``): the ambient ``f1`` is
+     subtracted from both lit frames before estimation (exact for ``f1``, the same
+     power; for ``f2`` it removes the ambient level, which a texture-less target's blur
+     does not change). Off by default: docs/BENCHMARKS.md records the measurement that
+     chose it.
+4. If an unlit pair's estimate is not trusted (low confidence, step 2) and its ROI texture
+   is weak (below ``retry_texture_snr`` x the noise floor), the light is tried once before
+   contrast-detect AF: ``f2`` lit (the lens is at ``P_e2``), ``f1``
+   lit, estimate, with both unlit frames as ambient. A lit estimate that is not trusted
+   either falls back to contrast-detect AF as plain DFD does.
+
+``illumination=None`` (no light named) never asks for a lit frame: the controller is
+then plain DFD. A dry run never lights (it does not move the lens either).
+
+Example:
+    >>> from tdfd import Camera
+    >>> ctrl = AssistedDFDController(Camera.preset("reference"), illumination="coherent")
+    >>> ctrl.illumination, ctrl.subtract_ambient
+    ('coherent', False)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from typing import Generator
+
+from ..camera import Camera
+from ..errors import InputError
+from .aggregate import DepthAggregate, aggregate_depth
+from .dfd import DFDController
+from .lit_tiles import lit_tile_mask, subtract_ambient
+from .machine import Abort, Gen
+from .messages import Command, Estimation, Frame, Observation, State
+from .roi import Roi, roi_tile_mask
+from .sharpness import texture_snr
+
+__all__ = ["AssistedDFDController", "LitPair"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass
+class LitPair:
+    """What the controller knows about the lit pair of the present focus cycle.
+
+    Attributes:
+        pattern: the light's pattern.
+        ambient_f1: the unlit frame at ``P_e1`` (same power as the lit ``f1``).
+        ambient_f2: the unlit frame at ``P_e2`` if one was taken, else ``None``.
+        lit_f1: the lit frame at ``P_e1`` as captured (before any subtraction).
+        lit_tiles: tiles the pattern covers inside the ROI (after estimation).
+        roi_tiles: tiles of the ROI (after estimation).
+        subtracted: the ambient frame was subtracted from the lit ones.
+        reason: why the light was used.
+    """
+
+    pattern: str
+    ambient_f1: Frame
+    ambient_f2: Frame | None
+    lit_f1: Frame | None = None
+    lit_tiles: int = 0
+    roi_tiles: int = 0
+    subtracted: bool = False
+    reason: str = ""
+
+
+class AssistedDFDController(DFDController):
+    """DFD autofocus that switches an assist light on for texture-less targets (module docs).
+
+    Args:
+        camera: see :class:`~tdfd.autofocus.dfd.DFDController`.
+        illumination: the pattern to ask for (``"coherent"``, ``"projector"`` on the bench;
+            ``"on"`` for a real light), ``None``: no light (plain DFD).
+        subtract_ambient: subtract the ambient frame from the lit ones before estimating.
+        light_texture_snr: the unlit ``f1``'s ROI texture over the noise floor below which
+            the pair is lit. A texture-less target reads about 1 (at most 1.08 over 60 bench
+            targets with sensor noise); a textured one can read lower than the pair check's
+            1.5 in ``f1`` alone when ``f1`` is blurred (a near target), and plain DFD does
+            better on it than a lit pair, hence 1.2.
+        retry_texture_snr: an unlit estimate that is not trusted is retried lit only if the
+            pair's ROI texture over the noise floor is below this (a weak texture, where the
+            pattern adds a cue); a strong texture that DFD still cannot read (a periodic one)
+            goes to contrast AF as in plain DFD: measured on 100 textured bench targets, two
+            stripes targets were focused at 1.2 and 1.7 px lit, in focus by contrast AF.
+        lit_k_noise, lit_rel: thresholds of :func:`~tdfd.autofocus.lit_tiles.lit_tile_mask`.
+        lit_min_confidence: ROI confidence needed from a lit estimate (default: the
+            controller's ``min_confidence``). Measured on 100 texture-less bench targets
+            with the shipped model: 0.01 instead of its 0.003 sends two right lit estimates
+            (confidence 0.007) to contrast AF, which ends out of focus on them.
+        ambient_pedestal: level added back after the subtraction (intensity units).
+        **kwargs: :class:`~tdfd.autofocus.dfd.DFDController` options.
+
+    Attributes:
+        lit: the present cycle's :class:`LitPair` (``None`` if it ran unlit).
+        lit_cycles: focus cycles that used the light.
+    """
+
+    def __init__(self, camera: Camera, *, illumination: str | None = None, subtract_ambient: bool = False,
+                 light_texture_snr: float = 1.2, retry_texture_snr: float = 3.0,
+                 lit_k_noise: float = 3.0, lit_rel: float = 0.05, lit_min_confidence: float | None = None,
+                 ambient_pedestal: float = 0.02, **kwargs) -> None:
+        super().__init__(camera, **kwargs)
+        if illumination is not None and not isinstance(illumination, str):
+            raise InputError(f"illumination must be a pattern name or None, got {illumination!r}")
+        if lit_min_confidence is not None and not 0 <= lit_min_confidence <= 1:
+            raise InputError(f"lit_min_confidence must be in [0, 1], got {lit_min_confidence}")
+        self.illumination = illumination
+        self.subtract_ambient = bool(subtract_ambient)
+        self.light_texture_snr = float(light_texture_snr)
+        self.retry_texture_snr = float(retry_texture_snr)
+        self.lit_k_noise, self.lit_rel = float(lit_k_noise), float(lit_rel)
+        self.lit_min_confidence = lit_min_confidence
+        self.ambient_pedestal = float(ambient_pedestal)
+        self.lit: LitPair | None = None
+        self.lit_cycles = 0
+        self._unlit_pair: tuple[Frame, Frame] | None = None
+        self._retry_lit = False
+        self._retry_reason = ""
+        self._base_min_confidence = self.min_confidence
+
+    # ------------------------------------------------------------------ capture
+    def _capture_pair(self, p1: float, p2: float) -> Generator[Command, Observation, tuple[Frame, Frame]]:
+        """The DFD pair of this cycle: unlit, or lit for a texture-less target (module docs)."""
+        self.lit = None
+        self.min_confidence = self._base_min_confidence
+        if self.illumination is None:
+            pair = yield from super()._capture_pair(p1, p2)
+            return pair
+        if self._retry_lit and self._unlit_pair is not None:
+            a1, a2 = self._unlit_pair  # the lens is still at P_e2 after the unlit f2
+            self._retry_lit = False
+            return (yield from self._lit_or_unlit(p1, p2, LitPair(self.illumination, a1, a2, reason=self._retry_reason)))
+        self.state = State.MOVE_F1
+        yield from self._set_power(p1)
+        self.state = State.CAPTURE_F1
+        f1, _ = yield from self._capture("f1", then_power_dpt=p2)
+        roi = self._roi_for(f1.image.shape[-2:])
+        try:
+            snr = texture_snr(f1.image, roi)
+        except InputError as exc:  # a tiny ROI: no texture check, plain DFD
+            log.info("no texture check before the light: %s", exc)
+            snr = math.inf
+        if snr >= self.light_texture_snr:
+            self.state = State.CAPTURE_F2
+            f2, _ = yield from self._capture("f2")
+            self._unlit_pair = (f1, f2)
+            return f1, f2
+        reason = f"texture-less target: ROI contrast {snr:.2f}x the noise floor in f1 (below {self.light_texture_snr:g}x)"
+        log.info("%s: lighting the DFD pair (%s)", reason, self.illumination)
+        self._unlit_pair = None
+        return (yield from self._lit_or_unlit(p1, p2, LitPair(self.illumination, f1, None, reason=reason)))
+
+    def _lit_or_unlit(self, p1: float, p2: float, lit: LitPair
+                      ) -> Generator[Command, Observation, tuple[Frame, Frame]]:
+        """The lit pair; if the light refuses or fails (a cap, a broken light), plain DFD's unlit pair."""
+        try:
+            return (yield from self._lit_pair(p1, lit))
+        except Abort as exc:
+            if exc.status != "failed" or "light" not in exc.reason.lower():
+                raise  # a halt, or a lens / camera failure: not the light's
+            log.warning("no lit frames (%s): going on unlit", exc.reason)
+            self.lit = None
+            self.min_confidence = self._base_min_confidence
+            self.result.fallback_reason = f"assist light unavailable: {exc.reason}"
+            pair = yield from super()._capture_pair(p1, p2)
+            self._unlit_pair = None  # the light is not tried again in this cycle
+            return pair
+
+    def _lit_pair(self, p1: float, lit: LitPair) -> Generator[Command, Observation, tuple[Frame, Frame]]:
+        """``f2`` lit at ``P_e2`` (where the lens is), then ``f1`` lit at ``P_e1``."""
+        self.lit = lit
+        self.lit_cycles += 1
+        self.state = State.CAPTURE_F2
+        f2, _ = yield from self._capture("f2 lit", then_power_dpt=p1, light=lit.pattern)
+        self.state = State.CAPTURE_F1
+        f1, _ = yield from self._capture("f1 lit", light=lit.pattern)
+        lit.lit_f1 = f1
+        if self.lit_min_confidence is not None:
+            self.min_confidence = float(self.lit_min_confidence)
+        if self.subtract_ambient:
+            lit.subtracted = True
+            amb1 = lit.ambient_f1.image
+            amb2 = lit.ambient_f2.image if lit.ambient_f2 is not None else amb1
+            f1 = dataclasses.replace(f1, image=subtract_ambient(f1.image, amb1, self.ambient_pedestal))
+            f2 = dataclasses.replace(f2, image=subtract_ambient(f2.image, amb2, self.ambient_pedestal))
+        return f1, f2
+
+    # ------------------------------------------------------------------ ROI depth
+    def _aggregate(self, obs: Estimation, roi: Roi, offset: tuple[int, int]) -> DepthAggregate:
+        """The ROI depth; for a lit pair, over the tiles the pattern covers only."""
+        mask = roi_tile_mask(roi, obs.depth_m.shape, obs.tile, obs.stride, offset)
+        lit = self.lit
+        if lit is None or lit.lit_f1 is None:
+            return aggregate_depth(obs.depth_m, obs.confidence, mask)
+        h, w = obs.depth_m.shape
+        y0, x0 = offset
+        y1, x1 = y0 + (h - 1) * obs.stride + obs.tile, x0 + (w - 1) * obs.stride + obs.tile
+        covered = lit_tile_mask(lit.lit_f1.image[..., y0:y1, x0:x1], lit.ambient_f1.image[..., y0:y1, x0:x1],
+                                obs.tile, obs.stride, self.lit_k_noise, self.lit_rel)
+        pooled = mask & covered
+        lit.roi_tiles, lit.lit_tiles = int(mask.sum()), int(pooled.sum())
+        log.info("lit pair (%s): the pattern covers %d of the ROI's %d tiles", lit.pattern, lit.lit_tiles, lit.roi_tiles)
+        if not pooled.any():
+            return DepthAggregate(depth_m=math.nan, inverse_depth=math.nan, confidence=0.0, spread_dpt=math.nan,
+                                  tiles=int(mask.sum()), inliers=0)
+        return aggregate_depth(obs.depth_m, obs.confidence, pooled)
+
+    # ------------------------------------------------------------------ fallback
+    def _contrast(self, centre_dpt: float | None) -> Gen:
+        """Before contrast-detect AF takes over from an untrusted unlit estimate, try the light once."""
+        weak = (self.result.texture_snr is None or not math.isfinite(self.result.texture_snr)
+                or self.result.texture_snr < self.retry_texture_snr)
+        if (centre_dpt is None and self.illumination is not None and self.lit is None and not self.dry_run
+                and self._unlit_pair is not None and weak):
+            self._retry_reason = self.result.fallback_reason or "DFD not trusted"
+            log.info("%s: retrying with the light (%s) before contrast-detect AF", self._retry_reason, self.illumination)
+            self.result.fallback_reason = None
+            self.result.refocus_count -= 1  # the same focus request, not a new cycle
+            self._retry_lit = True
+            yield from self._dfd_once()
+            return
+        yield from super()._contrast(centre_dpt)
+
+    def lit_summary(self) -> dict:
+        """What the light did in the last cycle (for reports): pattern, tiles, subtraction."""
+        if self.lit is None:
+            return {"light": None}
+        return {"light": self.lit.pattern, "lit_tiles": self.lit.lit_tiles, "roi_tiles": self.lit.roi_tiles,
+                "ambient_subtracted": self.lit.subtracted, "light_reason": self.lit.reason,
+                "lit_cycles": self.lit_cycles}
+
+
+# the hooks this policy uses in DFDController (the lead merges both branches):
+#   DFDController._capture_pair(p1, p2) -> (f1, f2): the capture steps of one cycle;
+#   DFDController._aggregate(obs, roi, offset) -> DepthAggregate: the ROI depth;
+#   StateMachine._capture(tag, then_power_dpt=None, light=None): Capture(..., light=...).
+

@@ -1,0 +1,169 @@
+"""The assist-light policy in the autofocus loop: lit pairs, lit-tile pooling, and the bench."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tdfd import Camera
+from tdfd.autofocus.assist import AssistedDFDController
+from tdfd.autofocus.dfd import DFDController
+from tdfd.autofocus.estimators import AnalyticEstimator
+from tdfd.autofocus.messages import Capture, Done, Estimate, Estimation, Frame, LensAck, SetPower
+from tdfd.autofocus.sim import SimBench
+from tdfd.light import SimulatedLight
+
+CAM = Camera.preset("reference")
+HW = (192, 224)
+
+
+def _noise(rng, img, s=0.004):
+    return (img + s * rng.standard_normal(img.shape)).astype(np.float32)
+
+
+def _answer(cmd, image, t):
+    """The observation a perfect plant gives ``cmd`` (frames from ``image(cmd)``)."""
+    if isinstance(cmd, SetPower):
+        return LensAck(cmd.power_dpt, t, t + cmd.settle_s)
+    lens = LensAck(cmd.then_power_dpt, t + 0.002, t + 0.017) if cmd.then_power_dpt is not None else None
+    return Frame(image(cmd), 0.0, t, t + 0.002, t + 0.005, cmd.tag, lens=lens)
+
+
+def _run_until_estimate(ctrl, image):
+    cmds, t = [], 0.0
+    cmd = ctrl.start(0.0)
+    while not isinstance(cmd, (Estimate, Done)):
+        cmds.append(cmd)
+        t += 0.02
+        cmd = ctrl.step(_answer(cmd, image, t))
+    return cmds, cmd
+
+
+def test_texture_less_target_gets_a_lit_pair_of_three_frames():
+    rng = np.random.default_rng(0)
+    flat = np.full(HW, 0.5)
+    stripes = flat.copy()
+    stripes[:, 60:100] += 0.35
+
+    def image(cmd):
+        return _noise(rng, stripes if cmd.light else flat)
+
+    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32))
+    cmds, est = _run_until_estimate(ctrl, image)
+    caps = [c for c in cmds if isinstance(c, Capture)]
+    assert [(c.tag, c.light) for c in caps] == [("f1", None), ("f2 lit", "coherent"), ("f1 lit", "coherent")]
+    p1, p2 = CAM.lens_powers_dpt
+    assert caps[0].then_power_dpt == p2 and caps[1].then_power_dpt == p1 and caps[2].then_power_dpt is None
+    assert isinstance(est, Estimate) and est.image_f1.std() > 0.1  # the lit frames are estimated
+    assert ctrl.result.frames == 3
+
+
+def test_textured_target_never_asks_for_the_light():
+    import cv2
+
+    rng = np.random.default_rng(1)
+    tex = np.clip(0.5 + cv2.GaussianBlur(0.6 * rng.standard_normal(HW), (0, 0), 2.0), 0, 1)  # 6-12 px texture
+    for ctrl in (AssistedDFDController(CAM, illumination="coherent"), DFDController(CAM)):
+        cmds, est = _run_until_estimate(ctrl, lambda cmd: _noise(rng, tex))
+        assert [c.light for c in cmds if isinstance(c, Capture)] == [None, None]
+    # without a light named the policy is plain DFD even on a texture-less target
+    ctrl = AssistedDFDController(CAM, illumination=None)
+    cmds, _ = _run_until_estimate(ctrl, lambda cmd: _noise(rng, np.full(HW, 0.5)))
+    assert all(c.light is None for c in cmds if isinstance(c, Capture))
+
+
+def test_dark_tiles_do_not_vote():
+    """Confident wrong depths on the tiles the pattern does not cover must not move the ROI depth."""
+    rng = np.random.default_rng(2)
+    flat = np.full(HW, 0.3)
+    lit = flat.copy()
+    lit[:, 100:124] += 0.4  # one stripe, 24 px wide
+
+    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32), roi=None)
+    _, est = _run_until_estimate(ctrl, lambda cmd: _noise(rng, lit if cmd.light else flat))
+    h = (est.image_f1.shape[0] - 64) // 32 + 1
+    w = (est.image_f1.shape[1] - 64) // 32 + 1
+    depth = np.full((h, w), 0.95)  # dark tiles: confidently wrong
+    conf = np.full((h, w), 0.9)
+    x0 = est.offset[1]
+    edged = [j for j in range(w) if any(x0 + 32 * j <= e < x0 + 32 * j + 64 for e in (100, 124))]
+    assert 0 < len(edged) < w
+    depth[:, edged] = 0.5  # tiles holding the stripe's edges: right
+    cmd = ctrl.step(Estimation(depth, conf, 64, 32, t_s=1.0))
+    assert isinstance(cmd, SetPower)
+    assert ctrl.last_aggregate.depth_m == pytest.approx(0.5)
+    assert cmd.power_dpt == pytest.approx(CAM.in_focus_power_dpt(0.5))
+    assert 0 < ctrl.lit.lit_tiles < ctrl.lit.roi_tiles
+    # plain DFD on the same estimate lets the dark tiles vote: a wrong depth
+    plain = DFDController(CAM, grid=(64, 32))
+    _run_until_estimate(plain, lambda cmd: _noise(rng, lit))
+    plain.step(Estimation(depth, conf, 64, 32, t_s=1.0))
+    assert abs(1 / plain.last_aggregate.depth_m - 1 / 0.5) > 0.4
+
+
+def test_pattern_missing_the_roi_falls_back_to_contrast():
+    rng = np.random.default_rng(3)
+    flat = np.full(HW, 0.4)
+    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32))
+    _, est = _run_until_estimate(ctrl, lambda cmd: _noise(rng, flat))  # the light shows nothing
+    h, w = ((s - 64) // 32 + 1 for s in est.image_f1.shape)
+    cmd = ctrl.step(Estimation(np.full((h, w), 0.6), np.full((h, w), 0.9), 64, 32, t_s=1.0))
+    assert ctrl.lit.lit_tiles == 0
+    assert isinstance(cmd, (SetPower, Capture)) and ctrl.state.name == "CONTRAST"
+    assert "texture-less" in ctrl.result.fallback_reason
+
+
+@pytest.fixture(scope="module")
+def analytic():
+    return AnalyticEstimator(CAM)
+
+
+@pytest.mark.parametrize("pattern", ["coherent", "projector"])
+def test_bench_lights_a_texture_less_target_into_focus(analytic, pattern):
+    light = SimulatedLight(CAM)
+    with SimBench(estimator=analytic, light=light, controller={"illumination": pattern}, compute_s=0.001,
+                  readout_hw=HW) as bench:
+        rec = bench.run_trial(0.5, "dfd", uniform=True)
+        assert rec.in_focus and rec.frames == 3 and rec.method == "dfd"
+        assert rec.extra["light"] == pattern and rec.extra["lit_tiles"] > 0
+        assert rec.extra["light_on_ms"] == pytest.approx(2 * bench.timing.exposure_s * 1e3)
+        assert not light.is_on and light.switch_count == 2
+        unlit = bench.run_trial(0.5, "dfd", uniform=True, illumination=None)
+        assert unlit.method == "contrast" and unlit.frames > 3  # plain DFD falls back on the same target
+        assert light.switch_count == 2
+
+
+def test_bench_textured_target_is_not_lit(analytic):
+    light = SimulatedLight(CAM)
+    with SimBench(estimator=analytic, light=light, controller={"illumination": "coherent"}, compute_s=0.001,
+                  readout_hw=HW, seed=4) as bench:
+        rec = bench.run_trial(0.6, "dfd", trial=1)
+    with SimBench(estimator=analytic, compute_s=0.001, readout_hw=HW, seed=4) as bench:
+        ref = bench.run_trial(0.6, "dfd", trial=1)
+    assert light.switch_count == 0 and rec.extra["light"] is None
+    assert (rec.frames, rec.final_power_dpt, rec.time_ms) == (ref.frames, ref.final_power_dpt, ref.time_ms)
+
+
+@pytest.mark.parametrize("amplitude,retried", [(0.0012, True), (0.2, False)])
+def test_untrusted_unlit_estimate_is_retried_lit_only_on_a_weak_texture(amplitude, retried):
+    import cv2
+
+    from tdfd.autofocus.roi import Roi
+    from tdfd.autofocus.sharpness import pair_texture_snr
+
+    rng = np.random.default_rng(5)
+    tex = 0.5 + cv2.GaussianBlur(amplitude * rng.standard_normal(HW), (0, 0), 2.0) / 0.14  # unit-ish variance
+    frames = [_noise(rng, tex, 0.002) for _ in range(2)]
+    snr = pair_texture_snr(*frames, Roi.centre(HW))
+    assert (1.2 < snr < 3.0) if retried else snr > 3.0
+    it = iter(frames * 3)
+    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32))
+    cmds, est = _run_until_estimate(ctrl, lambda cmd: next(it))
+    assert [c.light for c in cmds if isinstance(c, Capture)] == [None, None]  # textured in f1: unlit pair
+    h, w = ((s - 64) // 32 + 1 for s in est.image_f1.shape)
+    cmd = ctrl.step(Estimation(np.full((h, w), 0.6), np.full((h, w), 1e-4), 64, 32, t_s=1.0))  # not trusted
+    if retried:
+        assert isinstance(cmd, Capture) and cmd.light == "coherent" and cmd.tag == "f2 lit"
+        assert cmd.then_power_dpt == CAM.lens_powers_dpt[0]
+    else:
+        assert ctrl.state.name == "CONTRAST" and getattr(cmd, "light", None) is None
