@@ -244,9 +244,9 @@ def _hardware(analytic, fail=None, estimator=None, faults=None):
         lens = OptotuneLens.open(srv.port, timeout_s=0.2)
         set_power = lens.set_focal_power_dpt
 
-        def guarded(p):
+        def guarded(p, **kw):
             assert not port.cts, "the light was on during a lens command"
-            return set_power(p)
+            return set_power(p, **kw)
 
         lens.set_focal_power_dpt = guarded
         cam = _LitCamera(srv.device, port, fail=fail)
