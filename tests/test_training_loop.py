@@ -96,15 +96,15 @@ def test_ddp_two_processes_cpu(tmp_path):
 
 
 def test_training_lowers_the_validation_loss(tmp_path):
-    """40 steps on the stand-in data lower the held-out Laplace NLL (measured -1.956 -> -1.999 on
-    the forward-model stand-in); gradient ascent (``(-loss).backward()``) raises it above +30
-    within 10 steps."""
-    cfg = _cfg(tmp_path, "learn", "optim.steps=40", "optim.lr=0.01", "val_every=1", "log_every=1",
+    """40 steps on the stand-in data lower the held-out Laplace NLL (measured on the
+    forward-model stand-in: -1.955 -> best -2.104 after 11 steps, -1.983 at the end); gradient
+    ascent (``(-loss).backward()``) raises it above +30 within 10 steps."""
+    cfg = _cfg(tmp_path, "learn", "optim.steps=40", "optim.lr=0.003", "val_every=1", "log_every=1",
                "data.val_size=16", "final_eval=false")
     train(cfg)
     rows = list(csv.DictReader((Path(cfg.out_dir) / "train_log.csv").open()))
     nll = [float(r["val_nll"]) for r in rows]
     mre = [float(r["val_mre_refined"]) for r in rows]
     assert len(nll) == 40
-    assert nll[-1] < nll[0] - 0.02, (nll[0], nll[-1])
+    assert min(nll) < nll[0] - 0.1 and nll[-1] < nll[0], (nll[0], min(nll), nll[-1])
     assert max(nll) < nll[0] + 0.5 and max(mre) < 2 * mre[0], (max(nll), max(mre))
