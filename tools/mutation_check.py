@@ -122,19 +122,13 @@ MUTATIONS: list[Mutation] = [
         new="p = -1.0 / d + 1.0 / camera.sensor_distance_m - camera.fixed_power_dpt",
         tests=("tests/test_camera.py", "tests/test_autofocus_controller.py"),
     ),
-    # The assist light (tdfd/light) keys its emitter with a serial modem line (RTS/DTR). It is
-    # being written on another branch; once merged, fill in the line that drives the emitter
-    # (e.g. old="port.rts = on", new="port.rts = not on" or the DTR line swapped for RTS) and the
-    # tests that must catch it (the light's off-on-every-exit-path and loop:// modem tests), then
-    # delete `pending`.
     Mutation(
         name="light-modem-line",
-        point="the assist light's modem line (tdfd/light)",
-        path="",
-        old="",
-        new="",
-        tests=(),
-        pending="tdfd/light is not merged yet: the lead fills in this entry",
+        point="the assist light's modem line level (tdfd/light: asserted = emitter on)",
+        path="tdfd/light/serial_line.py",
+        old='setattr, self.port, self.line, bool(level))',
+        new='setattr, self.port, self.line, not level)',
+        tests=("tests/test_light_serial.py", "tests/test_light_safety.py"),
     ),
 ]
 
