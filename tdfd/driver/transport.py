@@ -38,15 +38,10 @@ try:  # pragma: no cover - termios is POSIX-only
 except ImportError:  # pragma: no cover
     _TERMIOS_ERRORS = ()
 
-try:
-    import serial
+import serial  # pyserial: a dependency
 
-    _SERIAL_ERRORS: tuple[type[BaseException], ...] = (serial.SerialException,)
-    _SERIAL_TIMEOUT: tuple[type[BaseException], ...] = (serial.SerialTimeoutException,)
-except ImportError:  # pragma: no cover - pyserial is a dependency
-    serial = None  # type: ignore[assignment]
-    _SERIAL_ERRORS = ()
-    _SERIAL_TIMEOUT = ()
+_SERIAL_ERRORS: tuple[type[BaseException], ...] = (serial.SerialException,)
+_SERIAL_TIMEOUT: tuple[type[BaseException], ...] = (serial.SerialTimeoutException,)
 
 __all__ = ["SerialTransport", "open_port", "DEFAULT_TIMEOUT_S", "DEFAULT_BAUDRATE"]
 
@@ -72,8 +67,6 @@ def open_port(port_or_url: str, *, baudrate: int = DEFAULT_BAUDRATE, timeout_s: 
     Raises:
         LensConnectionError: the port cannot be opened.
     """
-    if serial is None:  # pragma: no cover
-        raise LensConnectionError("pyserial is not installed")
     try:
         return serial.serial_for_url(
             port_or_url,

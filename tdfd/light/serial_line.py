@@ -51,13 +51,9 @@ try:  # pragma: no cover - POSIX only
 except ImportError:  # pragma: no cover
     fcntl = termios = None  # type: ignore[assignment]
 
-try:
-    import serial
+import serial  # pyserial: a dependency
 
-    _SERIAL_ERRORS: tuple[type[BaseException], ...] = (serial.SerialException,)
-except ImportError:  # pragma: no cover - pyserial is a dependency
-    serial = None  # type: ignore[assignment]
-    _SERIAL_ERRORS = ()
+_SERIAL_ERRORS: tuple[type[BaseException], ...] = (serial.SerialException,)
 
 __all__ = ["SerialLineLight", "open_serial_line", "LINES", "READBACKS"]
 
@@ -93,8 +89,6 @@ def open_serial_line(port: str, line: str) -> Any:
         InputError: ``line`` is not ``rts`` or ``dtr``.
     """
     key = _check_line(line)
-    if serial is None:  # pragma: no cover
-        raise LightConnectionError("pyserial is not installed")
     try:
         p = serial.serial_for_url(port, do_not_open=True)
         setattr(p, key, False)  # applied by open(): the light stays off
