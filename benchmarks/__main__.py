@@ -22,6 +22,7 @@ BENCHMARKS = {
     "bound": "benchmarks.bench_bound",
     "onnx": "benchmarks.bench_onnx",
     "autofocus": "benchmarks.bench_autofocus",
+    "reliability": "benchmarks.bench_reliability",
     "paper": "benchmarks.paper_experiment",
     "overview": "benchmarks.overview_figure",
 }

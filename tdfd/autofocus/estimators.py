@@ -28,7 +28,7 @@ from ..errors import InputError, ModelError
 from .threads import torch_threads
 
 __all__ = ["OnnxEstimator", "AnalyticEstimator", "load_estimator", "default_model_path", "suggested_min_confidence",
-           "ONNX_INTRA_THREADS"]
+           "suggested_confidence_scale", "ONNX_INTRA_THREADS"]
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +59,16 @@ def _as_frame(image: np.ndarray, name: str) -> np.ndarray:
     raise InputError(f"{name} must be (H, W) or (1, 1, H, W), got {a.shape}")
 
 
+def _confidence_scale(model_meta: Any) -> float:
+    """``b0`` from the ``tdfd.model`` metadata (learned: ``confidence_scale``; analytic: ``rel_error_scale``)."""
+    if isinstance(model_meta, dict):
+        for key in ("confidence_scale", "rel_error_scale"):
+            value = model_meta.get(key)
+            if isinstance(value, (int, float)) and value > 0:
+                return float(value)
+    return 0.01
+
+
 def suggested_min_confidence(estimator: Any) -> float:
     """The ROI-confidence threshold below which the autofocus loop should not trust ``estimator``.
 
@@ -67,6 +77,17 @@ def suggested_min_confidence(estimator: Any) -> float:
     scale (tdfd.model). Estimators may carry their own ``min_confidence``; default 0.01.
     """
     return float(getattr(estimator, "min_confidence", 0.01))
+
+
+def suggested_confidence_scale(estimator: Any) -> float:
+    """The estimator's ``b0``: the predicted relative inverse-depth error at which its confidence is 0.5.
+
+    The learned model's confidence is ``1 / (1 + (b / b0)^2)`` of its Laplace scale ``b``
+    (``confidence_scale`` in the ONNX file's ``tdfd.model`` metadata), the analytic one's of
+    its predicted relative error (``rel_error_scale``). Estimators may carry their own
+    ``confidence_scale``; default 0.01.
+    """
+    return float(getattr(estimator, "confidence_scale", 0.01))
 
 
 class OnnxEstimator:
@@ -105,6 +126,7 @@ class OnnxEstimator:
             if DepthRuntime is not None:
                 rt = DepthRuntime(self.path, threads=self.threads)
                 self._runtime = rt
+                self.confidence_scale = _confidence_scale(getattr(rt, "metadata", {}).get("tdfd.model"))
                 self.camera: Camera = rt.camera
                 self.tile, self.stride = int(rt.tile), int(rt.stride)
                 self.backend = "tdfd.runtime"
@@ -129,6 +151,11 @@ class OnnxEstimator:
             self.tile, self.stride = int(grid["tile"]), int(grid["stride"])
         except (KeyError, ValueError, TypeError) as exc:
             raise ModelError(f"{self.path} lacks valid tdfd.camera / tdfd.grid metadata: {exc}") from exc
+        try:
+            model_meta = json.loads(meta.get("tdfd.model", "null"))
+        except ValueError:
+            model_meta = None
+        self.confidence_scale = _confidence_scale(model_meta)
         names_in = [i.name for i in self._session.get_inputs()]
         names_out = [o.name for o in self._session.get_outputs()]
         if names_in[:2] != ["image_f1", "image_f2"] or not {"depth", "confidence"} <= set(names_out):
@@ -175,6 +202,7 @@ class AnalyticEstimator:
         self._model = FourierRatioDFD(self.camera, tile=self.tile, stride=self.stride, **kwargs).eval()
         self.threads = threads
         self.min_confidence = 0.005
+        self.confidence_scale = float(getattr(self._model, "rel_error_scale", 0.03))
         self.backend = "torch (analytic FourierRatioDFD)"
 
     def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
