@@ -53,6 +53,7 @@ def test_table_and_summary_are_readable():
     recs = _records()
     table = format_table(recs)
     assert "in focus" in table and "FAILED" in table and "fell back to contrast" in table
+    assert "declared on" in table
     text = format_summary(summarise(recs))
     assert "dfd" in text and "contrast AF needs 3.00x the frames" in text
 

@@ -169,9 +169,10 @@ def _fmt(x: Any, spec: str) -> str:
 
 
 def format_table(records: Iterable[Any]) -> str:
-    """A fixed-width table, one line per trial, for the terminal."""
+    """A fixed-width table, one line per trial, for the terminal ("declared on": the evidence focus
+    was declared on, ``-`` if it was not declared)."""
     head = (f"{'#':>3} {'method':<9} {'target m':>8} {'est. m':>7} {'ideal dpt':>9} {'final dpt':>9} "
-            f"{'blur px':>7} {'frames':>6} {'cmds':>4} {'time ms':>8}  result")
+            f"{'blur px':>7} {'frames':>6} {'cmds':>4} {'time ms':>8} {'declared on':<12} result")
     lines = [head, "-" * len(head)]
     for r in records:
         if r.status != "focused":
@@ -191,7 +192,7 @@ def format_table(records: Iterable[Any]) -> str:
         lines.append(f"{r.trial:>3} {method:<9} {_fmt(r.target_depth_m, '8.3f')} {_fmt(r.estimated_depth_m, '7.3f'):>7} "
                      f"{_fmt(r.ideal_power_dpt, '9.3f')} {_fmt(r.final_power_dpt, '9.3f')} "
                      f"{_fmt(r.residual_blur_px, '7.2f')} {r.frames:>6d} {r.lens_commands:>4d} "
-                     f"{_fmt(r.time_ms, '8.1f')}  {result}")
+                     f"{_fmt(r.time_ms, '8.1f')} {getattr(r, 'evidence', None) or '-':<12} {result}")
     return "\n".join(lines)
 
 
