@@ -23,6 +23,7 @@ BENCHMARKS = {
     "onnx": "benchmarks.bench_onnx",
     "autofocus": "benchmarks.bench_autofocus",
     "assist_light": "benchmarks.bench_assist_light",
+    "reliability": "benchmarks.bench_reliability",
     "paper": "benchmarks.paper_experiment",
     "overview": "benchmarks.overview_figure",
 }

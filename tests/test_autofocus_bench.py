@@ -22,7 +22,8 @@ def estimator():
 
 @pytest.fixture(scope="module")
 def bench(estimator):
-    with SimBench(estimator=estimator, readout_hw=HW, compute_s=0.005, seed=3, texture_families=("fractal",)) as b:
+    with SimBench(estimator=estimator, readout_hw=HW, compute_s=0.005, seed=3, texture_families=("fractal",),
+                  evidence_s=0.002) as b:
         yield b
 
 
@@ -52,11 +53,13 @@ def test_camera_timing():
         c.advance(-1)
 
 
-def test_dfd_trials_in_focus_with_two_frames(bench):
+def test_dfd_trials_in_focus_on_evidence(bench):
     recs = bench.run_trials([0.32, 0.55, 0.95], methods=("dfd",))
     for r in recs:
         assert r.status == "focused" and r.method == "dfd", r.reason
-        assert r.frames == 2 and r.lens_commands == 3
+        assert r.evidence in ("uncertainty", "verification") and r.frames <= 4
+        assert r.frames == 2 + (r.evidence == "verification") + r.refine_count
+        assert r.uncertainty_px is not None and r.dfd_blur_px is not None
         assert r.residual_blur_px < 1.0, (r.target_depth_m, r.estimated_depth_m)
         assert r.estimated_depth_m == pytest.approx(r.target_depth_m, rel=0.1)
 
@@ -70,6 +73,8 @@ def test_bench_timeline(bench):
     t_f1 = wire + 0.015  # exposure of f1 starts when the lens has settled
     t_f2 = t_f1 + 0.002 + wire + 0.015  # P2 commanded at the end of f1's exposure
     expected = t_f2 + 0.002 + 0.003 + 0.005 + wire + 0.015
+    assert r.evidence == "uncertainty" and r.blur_measurements == 1  # the pair check, charged 2 ms
+    expected += 0.002
     assert r.time_ms == pytest.approx(expected * 1e3, abs=1e-3)
     assert r.time_ms <= 70.0
     # the emulator saw every set-point with a read-back, on simulated time
@@ -132,7 +137,7 @@ def test_continuous_tracks_a_moving_target(estimator):
     with SimBench(estimator=estimator, readout_hw=HW, compute_s=0.005, texture_families=("fractal",)) as b:
         res, rows = b.run_continuous(lambda t: 0.4 + 0.5 * t, duration_s=0.6, refocus_interval_s=0.15)
     assert res.status == "halted" and res.refocus_count >= 3
-    depths = [d for _, _, d in res.history]
+    depths = [d for _, _, d in res.history if d is not None]  # None: a move after a verification frame
     assert depths[-1] > depths[0] + 0.1  # it followed the target outwards
     live = [r for r in rows if r["tag"] == "live"]
     assert live and np.median([r["residual_blur_px"] for r in live]) < 1.5

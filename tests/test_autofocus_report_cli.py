@@ -10,7 +10,7 @@ import pytest
 
 from tdfd import Camera
 from tdfd.autofocus.sim import TrialRecord
-from tdfd.autofocus.report import TRIAL_KEYS, build_report, format_summary, format_table, summarise, write_report
+from tdfd.autofocus.report import EXTRA_TRIAL_KEYS, TRIAL_KEYS, build_report, format_summary, format_table, summarise, write_report
 from tdfd.cli import main
 
 CAM = Camera.preset("reference")
@@ -28,13 +28,14 @@ def _records():
     return [ok, c1, fb, bad]
 
 
-def test_report_has_exactly_the_contract_keys(tmp_path):
+def test_report_has_the_contract_keys_and_the_declaration(tmp_path):
     assert set(TRIAL_KEYS) == CONTRACT_KEYS
     recs = _records()
     report = write_report(tmp_path / "sub" / "af.json", recs, {"seed": 0})
     data = json.loads((tmp_path / "sub" / "af.json").read_text())
     assert data == report and set(data) == {"trials", "summary"}
-    assert all(set(t) == CONTRACT_KEYS for t in data["trials"])
+    assert all(set(t) == CONTRACT_KEYS | set(EXTRA_TRIAL_KEYS) for t in data["trials"])
+    assert [t["declared"] for t in data["trials"]] == [True, True, True, False]
     assert data["trials"][3]["estimated_depth_m"] is None and data["trials"][2]["method"] == "contrast"
     s = data["summary"]
     dfd = s["methods"]["dfd"]
@@ -52,6 +53,7 @@ def test_table_and_summary_are_readable():
     recs = _records()
     table = format_table(recs)
     assert "in focus" in table and "FAILED" in table and "fell back to contrast" in table
+    assert "declared on" in table
     text = format_summary(summarise(recs))
     assert "dfd" in text and "contrast AF needs 3.00x the frames" in text
 
@@ -69,7 +71,8 @@ def test_cli_sim_end_to_end(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "target m" in text and "contrast AF needs" in text and "report written" in text
     data = json.loads(out.read_text())
-    assert len(data["trials"]) == 4 and all(set(t) == CONTRACT_KEYS for t in data["trials"])
+    assert len(data["trials"]) == 4 and all(set(t) == CONTRACT_KEYS | set(EXTRA_TRIAL_KEYS) for t in data["trials"])
+    assert all(t["declared"] == (t["evidence"] is not None) for t in data["trials"])
     assert {t["method"] for t in data["trials"]} <= {"dfd", "contrast"}
     assert data["summary"]["settings"]["compute_ms_per_estimate"] == pytest.approx(5.0)
     assert rc == 0

@@ -135,10 +135,11 @@ def test_bench_lights_a_texture_less_target_into_focus(analytic, pattern):
 
 def test_bench_textured_target_is_not_lit(analytic):
     light = SimulatedLight(CAM)
+    # evidence_s fixed: the default calibrates the evidence's compute time on each bench (wall clock)
     with SimBench(estimator=analytic, light=light, controller={"illumination": "coherent"}, compute_s=0.001,
-                  readout_hw=HW, seed=4) as bench:
+                  evidence_s=0.005, readout_hw=HW, seed=4) as bench:
         rec = bench.run_trial(0.6, "dfd", trial=1)
-    with SimBench(estimator=analytic, compute_s=0.001, readout_hw=HW, seed=4) as bench:
+    with SimBench(estimator=analytic, compute_s=0.001, evidence_s=0.005, readout_hw=HW, seed=4) as bench:
         ref = bench.run_trial(0.6, "dfd", trial=1)
     assert light.switch_count == 0 and rec.extra["light"] is None
     assert (rec.frames, rec.final_power_dpt, rec.time_ms) == (ref.frames, ref.final_power_dpt, ref.time_ms)

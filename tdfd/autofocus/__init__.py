@@ -14,12 +14,15 @@ Layers, bottom to top; a module imports only from its own layer or the ones belo
    * helpers the policies share: :mod:`~tdfd.autofocus.roi` (:class:`Roi`, ROI tiles),
      :mod:`~tdfd.autofocus.aggregate` (:func:`aggregate_depth`),
      :mod:`~tdfd.autofocus.sharpness` (:func:`sharpness`, texture over noise); the in-focus
-     power is :func:`tdfd.camera.in_focus_power_dpt` (the one formula, re-exported here).
+     power is :func:`tdfd.camera.in_focus_power_dpt` (the one formula, re-exported here),
+     :mod:`~tdfd.autofocus.evidence` (what a declared focus rests on: the estimate's
+     uncertainty, the DFD pair's own relative blur, a verification frame).
 
 2. Policies
 
    * :mod:`~tdfd.autofocus.contrast`: :class:`ContrastSearch`, :class:`ContrastController`.
-   * :mod:`~tdfd.autofocus.dfd`: :class:`DFDController` (falls back to the contrast search).
+   * :mod:`~tdfd.autofocus.dfd`: :class:`DFDController` (declares focus only on its own
+     evidence; falls back to the contrast search).
    * :mod:`~tdfd.autofocus.assist`: ``AssistedDFDController``, DFD that lights the pair of a
      texture-less target with an assist light (:mod:`tdfd.light`), pooling the lit tiles
      (:mod:`~tdfd.autofocus.lit_tiles`).

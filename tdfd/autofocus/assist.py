@@ -49,6 +49,8 @@ import logging
 import math
 from typing import Generator
 
+import numpy as np
+
 from ..camera import Camera
 from ..errors import InputError
 from .aggregate import DepthAggregate, aggregate_depth
@@ -211,12 +213,13 @@ class AssistedDFDController(DFDController):
         return f1, f2
 
     # ------------------------------------------------------------------ ROI depth
-    def _aggregate(self, obs: Estimation, roi: Roi, offset: tuple[int, int]) -> DepthAggregate:
-        """The ROI depth; for a lit pair, over the tiles the pattern covers only."""
+    def _aggregate(self, obs: Estimation, roi: Roi, offset: tuple[int, int]
+                   ) -> tuple[DepthAggregate, np.ndarray]:
+        """The ROI depth and the tiles it pooled; for a lit pair, the tiles the pattern covers only."""
         mask = roi_tile_mask(roi, obs.depth_m.shape, obs.tile, obs.stride, offset)
         lit = self.lit
         if lit is None or lit.lit_f1 is None:
-            return aggregate_depth(obs.depth_m, obs.confidence, mask)
+            return aggregate_depth(obs.depth_m, obs.confidence, mask), mask
         h, w = obs.depth_m.shape
         y0, x0 = offset
         y1, x1 = y0 + (h - 1) * obs.stride + obs.tile, x0 + (w - 1) * obs.stride + obs.tile
@@ -227,8 +230,8 @@ class AssistedDFDController(DFDController):
         log.info("lit pair (%s): the pattern covers %d of the ROI's %d tiles", lit.pattern, lit.lit_tiles, lit.roi_tiles)
         if not pooled.any():
             return DepthAggregate(depth_m=math.nan, inverse_depth=math.nan, confidence=0.0, spread_dpt=math.nan,
-                                  tiles=int(mask.sum()), inliers=0)
-        return aggregate_depth(obs.depth_m, obs.confidence, pooled)
+                                  tiles=int(mask.sum()), inliers=0), pooled
+        return aggregate_depth(obs.depth_m, obs.confidence, pooled), pooled
 
     # ------------------------------------------------------------------ fallback
     def _contrast(self, centre_dpt: float | None) -> Gen:
@@ -255,8 +258,8 @@ class AssistedDFDController(DFDController):
                 "lit_cycles": self.lit_cycles}
 
 
-# the hooks this policy uses in DFDController (the lead merges both branches):
+# the hooks this policy overrides or uses in DFDController / StateMachine:
 #   DFDController._capture_pair(p1, p2) -> (f1, f2): the capture steps of one cycle;
-#   DFDController._aggregate(obs, roi, offset) -> DepthAggregate: the ROI depth;
+#   DFDController._aggregate(obs, roi, offset) -> (DepthAggregate, mask): the ROI depth and its tiles;
 #   StateMachine._capture(tag, then_power_dpt=None, light=None): Capture(..., light=...).
 

@@ -92,7 +92,16 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
                       help="ONNX model, or 'analytic' for the Fourier-ratio stand-in (default: models/reference.onnx "
                            "if present, else analytic)")
     what.add_argument("--roi", default=None, help="region of interest x,y,w,h in frame pixels (default: centred half)")
-    what.add_argument("--verify", action="store_true", help="check focus with one more frame")
+    ver = what.add_mutually_exclusive_group()
+    ver.add_argument("--verify", dest="verify", action="store_const", const="always", default="auto",
+                     help="always check the DFD focus with a verification frame (default: only when the "
+                          "estimate's own uncertainty is above --max-uncertainty)")
+    ver.add_argument("--no-verify", dest="verify", action="store_const", const="never",
+                     help="never take a verification frame: focus is declared on the estimate's uncertainty "
+                          "alone, else the contrast search decides")
+    what.add_argument("--max-uncertainty", type=float, default=0.2,
+                      help="DFD uncertainty (px of blur) up to which focus is declared without a verification "
+                           "frame (default 0.2)")
     what.add_argument("--continuous", action="store_true", help="keep re-estimating as the target moves")
     what.add_argument("--duration", type=float, default=2.0, help="continuous run length in seconds (default 2)")
     what.add_argument("--min-confidence", type=float, default=None,
@@ -204,7 +213,8 @@ def _run_sim(args: argparse.Namespace) -> int:
                           phase_s=float(np.random.default_rng(args.seed).uniform(0, 1.0 / args.fps)))
     roi = _roi(args)
     contrast = {"strategy": args.contrast_strategy, "step_dpt": args.contrast_step}
-    controller = {"verify": args.verify, "min_texture_snr": args.min_texture_snr}
+    controller = {"verify": args.verify, "min_texture_snr": args.min_texture_snr,
+                  "max_uncertainty_px": args.max_uncertainty}
     if args.min_confidence is not None:
         controller["min_confidence"] = args.min_confidence
     light, light_controller = sim_light(args, est.camera if est is not None else Camera.preset("reference"))
@@ -283,6 +293,7 @@ def _continuous(args: argparse.Namespace, bench) -> int:
 
     extra = {"min_confidence": args.min_confidence} if args.min_confidence is not None else {}
     result, rows = bench.run_continuous(schedule, duration_s=args.duration, verify=args.verify,
+                                        max_uncertainty_px=args.max_uncertainty,
                                         min_texture_snr=args.min_texture_snr, **extra)
     live = [r for r in rows if r["tag"] == "live"]
     in_focus = sum(1 for r in live if r["residual_blur_px"] < 1.0)
@@ -316,7 +327,7 @@ def _run_hardware(args: argparse.Namespace) -> int:
                                dry_run=args.dry_run, continuous=args.continuous,
                                duration_s=args.duration if args.continuous else None, settle_s=args.settle_ms / 1e3,
                                linearise=args.linearise, white_level=args.white_level,
-                               min_confidence=args.min_confidence,
+                               min_confidence=args.min_confidence, max_uncertainty_px=args.max_uncertainty,
                                contrast={"strategy": args.contrast_strategy, "step_dpt": args.contrast_step},
                                light=light, illumination=args.illumination, light_limits=light_limits(args))
     finally:

@@ -220,5 +220,5 @@ class ContrastController(StateMachine):
         self.state = State.MOVE_FOCUS
         ack = yield from self._set_power(power)
         res: AFResult = self.result
-        res.power_dpt, res.status, res.t_focus_s = power, "focused", ack.ready_s
+        res.power_dpt, res.status, res.t_focus_s, res.evidence = power, "focused", ack.ready_s, "contrast"
         res.history.append((ack.ready_s, power, None))

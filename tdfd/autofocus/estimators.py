@@ -22,14 +22,14 @@ from typing import Any
 import numpy as np
 
 from ..camera import Camera
-from ..contract import DEFAULT_MODEL_RELPATH
+from ..contract import DEFAULT_MODEL_RELPATH, MODEL_KEY
 from ..errors import InputError, ModelError
 from ..runtime import DepthRuntime
 from ..runtime import default_model_path as runtime_default_model_path
 from .threads import torch_threads
 
 __all__ = ["OnnxEstimator", "AnalyticEstimator", "load_estimator", "default_model_path", "suggested_min_confidence",
-           "ONNX_INTRA_THREADS"]
+           "suggested_confidence_scale", "ONNX_INTRA_THREADS"]
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +56,16 @@ def _as_frame(image: np.ndarray, name: str) -> np.ndarray:
     raise InputError(f"{name} must be (H, W) or (1, 1, H, W), got {a.shape}")
 
 
+def _confidence_scale(model_meta: Any) -> float:
+    """``b0`` from the ``tdfd.model`` metadata (learned: ``confidence_scale``; analytic: ``rel_error_scale``)."""
+    if isinstance(model_meta, dict):
+        for key in ("confidence_scale", "rel_error_scale"):
+            value = model_meta.get(key)
+            if isinstance(value, (int, float)) and value > 0:
+                return float(value)
+    return 0.01
+
+
 def suggested_min_confidence(estimator: Any) -> float:
     """The ROI-confidence threshold below which the autofocus loop should not trust ``estimator``.
 
@@ -64,6 +74,17 @@ def suggested_min_confidence(estimator: Any) -> float:
     scale (tdfd.model). Estimators may carry their own ``min_confidence``; default 0.01.
     """
     return float(getattr(estimator, "min_confidence", 0.01))
+
+
+def suggested_confidence_scale(estimator: Any) -> float:
+    """The estimator's ``b0``: the predicted relative inverse-depth error at which its confidence is 0.5.
+
+    The learned model's confidence is ``1 / (1 + (b / b0)^2)`` of its Laplace scale ``b``
+    (``confidence_scale`` in the ONNX file's ``tdfd.model`` metadata), the analytic one's of
+    its predicted relative error (``rel_error_scale``). Estimators may carry their own
+    ``confidence_scale``; default 0.01.
+    """
+    return float(getattr(estimator, "confidence_scale", 0.01))
 
 
 class OnnxEstimator:
@@ -104,6 +125,7 @@ class OnnxEstimator:
         self.camera: Camera = self._runtime.camera
         self.tile, self.stride = int(self._runtime.tile), int(self._runtime.stride)
         self.last_problem: str | None = None
+        self.confidence_scale = _confidence_scale(self._runtime.metadata.get(MODEL_KEY))
 
     def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Depth (m) and confidence, each ``(h, w)``, for one pair of ``(H, W)`` frames."""
@@ -139,6 +161,7 @@ class AnalyticEstimator:
         self._model = FourierRatioDFD(self.camera, tile=self.tile, stride=self.stride, **kwargs).eval()
         self.threads = threads
         self.min_confidence = 0.005
+        self.confidence_scale = float(getattr(self._model, "rel_error_scale", 0.03))
         self.backend = "torch (analytic FourierRatioDFD)"
 
     def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -38,7 +38,7 @@ from ..light.guard import DEFAULT_LIMITS, LightGuard, LightLimits, exposure
 from .assist import AssistedDFDController
 from .contrast import ContrastController
 from .dfd import DFDController
-from .estimators import suggested_min_confidence
+from .estimators import suggested_confidence_scale, suggested_min_confidence
 from .interfaces import Estimator
 from .lens_command import command_lens
 from .machine import StateMachine, drive
@@ -231,13 +231,13 @@ class HardwarePlant:
 
 
 def run_hardware(port: str | None, camera_source: str | int, estimator: Estimator | None, *, method: str = "dfd",
-                 roi: Roi | None = None, verify: bool = False, dry_run: bool = False, continuous: bool = False,
+                 roi: Roi | None = None, verify: bool | str = "auto", dry_run: bool = False, continuous: bool = False,
                  duration_s: float | None = None, settle_s: float = 0.015, linearise: bool = False,
                  white_level: float | None = None,
                  temperature_limits_c: tuple[float, float] = HARDWARE_TEMPERATURE_LIMITS_C,
                  contrast: dict | None = None, camera: Any | None = None, lens: Any | None = None,
-                 min_confidence: float | None = None, light: Any | None = None, illumination: str | None = None,
-                 light_limits: LightLimits = DEFAULT_LIMITS) -> AFResult:
+                 min_confidence: float | None = None, max_uncertainty_px: float = 0.2, light: Any | None = None,
+                 illumination: str | None = None, light_limits: LightLimits = DEFAULT_LIMITS) -> AFResult:
     """Autofocus once (or continuously) on real hardware.
 
     Args:
@@ -254,6 +254,7 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
         temperature_limits_c: sent before focal-power mode.
         contrast: contrast-search options.
         min_confidence: ROI-confidence threshold (default: the estimator's suggestion).
+        max_uncertainty_px: see :class:`~tdfd.autofocus.dfd.DFDController`.
         camera, lens: already-open objects to use instead of opening ``camera_source`` / ``port``.
         light: the assist light the user named (an open :class:`~tdfd.light.base.AssistLight`,
             see :func:`tdfd.light.open_light`), used by DFD through a
@@ -303,6 +304,8 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
         if method == "dfd":
             dfd_kwargs = dict(roi=roi, settle_s=settle_s, verify=verify, dry_run=dry_run, continuous=continuous,
                               power_limits_dpt=limits, contrast=contrast, grid=(estimator.tile, estimator.stride),
+                              confidence_scale=suggested_confidence_scale(estimator),
+                              max_uncertainty_px=max_uncertainty_px,
                               min_confidence=suggested_min_confidence(estimator) if min_confidence is None
                               else min_confidence)
             ctrl = (AssistedDFDController(optics, illumination=pattern, **dfd_kwargs) if pattern is not None

@@ -210,7 +210,9 @@ class AFResult:
     """How an autofocus run ended.
 
     Attributes:
-        status: ``"focused"``, ``"failed"``, ``"dry-run"`` or ``"halted"``.
+        status: ``"focused"`` (focus declared), ``"unconfirmed"`` (the lens is at the DFD focus
+            but no evidence confirmed it, and no fallback was allowed), ``"failed"``,
+            ``"dry-run"`` or ``"halted"``.
         method: ``"dfd"`` or ``"contrast"`` (the method that set the final power).
         power_dpt: final commanded ECVFL power (dpt), ``None`` if none.
         estimated_depth_m: DFD depth of the ROI (m), ``None`` without an estimate.
@@ -224,7 +226,18 @@ class AFResult:
         error: why the run failed, ``None`` if it did not.
         clamped: the in-focus power was outside the lens range and was clamped.
         texture_snr: ROI band-pass contrast over the noise floor in the sharper DFD frame.
-        verified: result of the verification frame, ``None`` if not verified.
+        verified: result of the last verification frame, ``None`` if none was taken.
+        evidence: what declared the focus: ``"uncertainty"`` (the estimate's own),
+            ``"verification"`` (a verification frame), ``"contrast"`` (a contrast-detect
+            peak); ``None`` if focus was not declared.
+        uncertainty_px: the DFD estimate's uncertainty as a blur radius (px), ``None`` without one.
+        verify_error_dpt: the focus error the last verification frame measured (dpt).
+        dfd_power_dpt: the in-focus power of the (last) DFD estimate, before any refinement (dpt).
+        refine_count: further DFD steps taken after failed verifications.
+        pair_agrees: the model's in-focus power lies in the interval the DFD pair allows
+            without the model (``None`` if not checked).
+        blur_measurements: relative-blur measurements the evidence took (each about 10 ms of
+            CPU on the ROI; the simulated bench charges them to the time to focus).
         refocus_count: DFD cycles run (continuous mode counts every re-estimate).
         history: ``(t_s, power_dpt, depth_m)`` of every focus decision (continuous mode).
     """
@@ -243,6 +256,13 @@ class AFResult:
     clamped: bool = False
     texture_snr: float | None = None
     verified: bool | None = None
+    evidence: str | None = None
+    uncertainty_px: float | None = None
+    verify_error_dpt: float | None = None
+    dfd_power_dpt: float | None = None
+    refine_count: int = 0
+    pair_agrees: bool | None = None
+    blur_measurements: int = 0
     refocus_count: int = 0
     history: list[tuple[float, float, float | None]] = field(default_factory=list)
 

@@ -51,10 +51,11 @@ from ...light.guard import DEFAULT_LIMITS, LightGuard, LightLimits
 from ..assist import AssistedDFDController
 from ..contrast import ContrastController
 from ..dfd import DFDController
-from ..estimators import suggested_min_confidence
+from ..estimators import suggested_confidence_scale, suggested_min_confidence
 from ..interfaces import Estimator
 from ..machine import StateMachine, drive
 from ..messages import AFResult
+from ..evidence import relative_blur_px2
 from ..roi import Roi, roi_crop_box
 from .camera import VirtualCamera
 from .clock import SimClock
@@ -103,6 +104,9 @@ class SimBench:
             trials asked with ``illumination=PATTERN`` (controller option) run the
             :class:`~tdfd.autofocus.assist.AssistedDFDController`. ``None``: no light.
         light_limits: the light's on-time and duty caps.
+        evidence_s: time charged per relative-blur measurement of the controller's evidence
+            (``None``: calibrated on this machine when the bench opens, 0 with ``compute_s=0``);
+            added to the trial's time to focus (every one lies on the path to the declaration).
     """
 
     def __init__(self, camera: Camera | None = None, estimator: Estimator | None = None,
@@ -111,7 +115,8 @@ class SimBench:
                  compute_s: float | str = "calibrated", seed: int = 0, psf: Any = "gaussian", scene: Scene | None = None,
                  faults: Any | None = None, driver_timeout_s: float = 0.1, controller: dict | None = None,
                  contrast: dict | None = None, texture_families: Sequence[str] | None = None,
-                 light: Any | None = None, light_limits: LightLimits = DEFAULT_LIMITS) -> None:
+                 light: Any | None = None, light_limits: LightLimits = DEFAULT_LIMITS,
+                 evidence_s: float | None = None) -> None:
         if camera is None:
             camera = estimator.camera if estimator is not None else Camera.preset("reference")
         self.camera, self.estimator = camera, estimator
@@ -135,6 +140,23 @@ class SimBench:
         if compute_s not in ("calibrated", "measured") and not (isinstance(compute_s, (int, float)) and compute_s >= 0):
             raise InputError(f"compute_s must be 'calibrated', 'measured' or a time >= 0 (s), got {compute_s!r}")
         self.compute_charge_s: float | str = compute_s if compute_s != "calibrated" else "measured"
+        self.evidence_charge_s: float | None = evidence_s
+
+    def calibrate_evidence(self, repeats: int = 5) -> float:
+        """Median wall time (s) of one relative-blur measurement on the ROI (the controller's evidence,
+        :func:`tdfd.autofocus.evidence.relative_blur_px2`), after one warm-up run."""
+        import cv2
+
+        rng = np.random.default_rng(54321)
+        a = cv2.GaussianBlur(rng.uniform(0.2, 0.8, self.readout_hw).astype(np.float32), (0, 0), 1.0)
+        b = cv2.GaussianBlur(a, (0, 0), 2.0)
+        relative_blur_px2(a, b, self.roi)
+        times = []
+        for _ in range(max(1, repeats)):
+            t0 = time.perf_counter()
+            relative_blur_px2(a, b, self.roi)
+            times.append(time.perf_counter() - t0)
+        return float(np.median(times))
 
     def calibrate_compute(self, repeats: int = 7) -> float:
         """Median wall time (s) of the estimator on a pair of frames of the size the DFD
@@ -158,6 +180,9 @@ class SimBench:
         """Start the emulator and connect the driver."""
         if self.lens is None:
             self.lens = EmulatedLens(self.clock, settling_time_s=self.settle_s, timeout_s=self.driver_timeout_s)
+        if self.evidence_charge_s is None:
+            self.evidence_charge_s = self.calibrate_evidence() if self.compute_s != 0 else 0.0
+            log.info("evidence charged per relative-blur measurement: %.1f ms", self.evidence_charge_s * 1e3)
         if self.compute_s == "calibrated" and self.compute_charge_s == "measured" and self.estimator is not None:
             self.compute_charge_s = self.calibrate_compute()
             log.info("estimator compute time charged per estimate: %.1f ms (median on this machine)",
@@ -191,7 +216,8 @@ class SimBench:
         if method == "dfd":
             grid = (self.estimator.tile, self.estimator.stride) if self.estimator is not None else None
             kwargs = dict(roi=self.roi, settle_s=self.settle_s, power_limits_dpt=limits, contrast=self.contrast_kwargs,
-                          grid=grid, min_confidence=suggested_min_confidence(self.estimator))
+                          grid=grid, min_confidence=suggested_min_confidence(self.estimator),
+                          confidence_scale=suggested_confidence_scale(self.estimator))
             kwargs.update(self.controller_kwargs)
             kwargs.update(overrides)
             if kwargs.get("illumination") is not None:
@@ -270,9 +296,15 @@ class SimBench:
         return TrialRecord(
             target_depth_m=float(target), estimated_depth_m=result.estimated_depth_m, ideal_power_dpt=float(ideal),
             final_power_dpt=float(final), residual_blur_px=resid, frames=result.frames,
-            lens_commands=result.lens_commands, time_ms=(t_end - t0) * 1e3, method=result.method,
+            lens_commands=result.lens_commands,
+            time_ms=(t_end - t0 + result.blur_measurements * float(self.evidence_charge_s or 0.0)) * 1e3,
+            method=result.method,
             requested=requested, status=result.status, reason=reason, confidence=result.confidence,
-            compute_ms=compute, verified=result.verified, trial=trial)
+            compute_ms=compute, verified=result.verified, trial=trial, evidence=result.evidence,
+            uncertainty_px=result.uncertainty_px, refine_count=result.refine_count, psf=str(self.psf),
+            blur_measurements=result.blur_measurements,
+            dfd_blur_px=None if result.dfd_power_dpt is None else
+            abs(float(camera_blur_radii_px(self.camera, target, result.dfd_power_dpt))))
 
     def run_trials(self, depths: Sequence[float], methods: Sequence[str] = ("dfd",), uniform: bool = False,
                    progress: Callable[[TrialRecord], None] | None = None, **controller: Any) -> list[TrialRecord]:

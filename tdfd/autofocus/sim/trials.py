@@ -33,6 +33,16 @@ class TrialRecord:
         compute_ms: estimator time charged (ms).
         verified: verification outcome, ``None`` if not verified.
         trial: index.
+        scene: the scene's name (texture family).
+        evidence: what declared the focus (``"uncertainty"``, ``"verification"``,
+            ``"contrast"``), ``None`` if focus was not declared.
+        uncertainty_px: the DFD estimate's own uncertainty as a blur radius (px).
+        dfd_blur_px: ``|r_b|`` at the in-focus power of the first DFD estimate (px): whether
+            that estimate was right, whatever the controller then did.
+        refine_count: further DFD steps after failed verifications.
+        psf: the simulated optics' PSF.
+        blur_measurements: relative-blur measurements the controller's evidence took (each
+            charged to ``time_ms``).
     """
 
     target_depth_m: float
@@ -52,12 +62,36 @@ class TrialRecord:
     verified: bool | None = None
     trial: int = 0
     scene: str = ""
+    evidence: str | None = None
+    uncertainty_px: float | None = None
+    dfd_blur_px: float | None = None
+    refine_count: int = 0
+    psf: str = ""
+    blur_measurements: int = 0
     extra: dict = field(default_factory=dict)
+
+    @property
+    def declared(self) -> bool:
+        """The controller declared focus."""
+        return self.status == "focused"
 
     @property
     def in_focus(self) -> bool:
         """Focus declared and residual blur radius under 1 px."""
-        return self.status == "focused" and self.residual_blur_px is not None and self.residual_blur_px < 1.0
+        return self.declared and self.residual_blur_px is not None and self.residual_blur_px < 1.0
+
+    @property
+    def declared_out_of_focus(self) -> bool:
+        """Focus declared with a residual blur radius of 1 px or more: the failure the controller must not make."""
+        return self.declared and not self.in_focus
+
+    @property
+    def withheld_correct(self) -> bool:
+        """The first DFD estimate was in focus, but the controller did not declare focus on it at once
+        (it verified and refined, searched by contrast, or ended without declaring)."""
+        if self.dfd_blur_px is None or self.dfd_blur_px >= 1.0:
+            return False
+        return not (self.declared and self.evidence in ("uncertainty", "verification") and self.refine_count == 0)
 
 
 def trial_depths(n: int, seed: int = 0, depth_range_m: tuple[float, float] = (0.3, 1.0)) -> list[float]:

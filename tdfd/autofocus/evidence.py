@@ -1,0 +1,331 @@
+r"""The controller's own evidence that a focus is right, before it declares it.
+
+Two kinds, both in ECVFL dioptres of focus error and, through the thin lens, pixels of
+residual blur (the success criterion is a geometric blur radius under 1 px):
+
+* **The estimate's uncertainty** (no extra frame): the depth model's per-tile confidence
+  is a monotone map of its predicted Laplace scale ``b`` of the relative inverse-depth
+  error, ``conf = 1 / (1 + (b / b0)^2)`` (tdfd.model; the analytic estimator's ``b`` is its
+  predicted relative error). :func:`estimate_uncertainty` inverts it, takes the median over
+  the ROI's tiles (the tiles' errors are largely shared by the plane, so they are not
+  averaged down) and combines it with the tiles' disagreement.
+* **The DFD pair without the model** (:func:`pair_focus_interval`): the relative blur of
+  the two frames bounds the in-focus power; the model's estimate must fall inside.
+* **A verification frame** at the in-focus power (:func:`verify_focus`): the relative blur
+  between it and each earlier frame of the run (the DFD pair, earlier verification frames)
+  is measured directly on the ROI (:func:`relative_blur_px2`, no depth model involved).
+  With Gaussian blur ``sigma = M |P - P*|`` (``M = mu (A/2) d_s`` px/dpt, paper eqs. 3 and
+  7), a reference frame at ``P_k`` and the verification frame at ``P_v`` give
+  ``sigma_k^2 - sigma_v^2 = M^2 (P_k - P_v)(P_k + P_v - 2 P*)``, which is linear in the
+  in-focus power ``P*``: every reference frame is one more DFD measurement of the focus
+  error ``e = P_v - P*``, taken with one frame near focus.
+
+Sign convention: ``e > 0`` when the lens's power is above the power that focuses the ROI.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import InputError
+from .aggregate import DepthAggregate
+from .roi import Roi
+from .sharpness import noise_variance
+
+__all__ = [
+    "blur_px_per_dpt",
+    "sigma_px_per_dpt",
+    "relative_error_scale",
+    "FocusUncertainty",
+    "estimate_uncertainty",
+    "relative_blur_px2",
+    "FocusCheck",
+    "verify_focus",
+    "pair_focus_interval",
+]
+
+
+def blur_px_per_dpt(camera: Camera) -> float:
+    """Geometric blur radius (px) per dioptre of focus error: ``(A/2) d_s / pixel pitch`` (paper eq. 3)."""
+    return camera.blur_scale_m_dpt / camera.pixel_pitch_m
+
+
+def sigma_px_per_dpt(camera: Camera) -> float:
+    """Gaussian PSF standard deviation (px) per dioptre of focus error: ``M = mu (A/2) d_s`` (paper eq. 7)."""
+    return camera.mu_px_per_m * camera.blur_scale_m_dpt
+
+
+def relative_error_scale(confidence: np.ndarray, confidence_scale: float) -> np.ndarray:
+    """The predicted relative inverse-depth error scale ``b = b0 sqrt(1/conf - 1)`` behind a confidence.
+
+    Args:
+        confidence: per-tile confidence in [0, 1].
+        confidence_scale: ``b0``, the relative error at which the confidence is 0.5.
+
+    Example:
+        >>> float(relative_error_scale(np.array(0.5), 0.01))
+        0.01
+    """
+    if not confidence_scale > 0:
+        raise InputError(f"confidence_scale must be > 0, got {confidence_scale}")
+    c = np.clip(np.asarray(confidence, dtype=np.float64), 1e-12, 1.0)
+    return confidence_scale * np.sqrt(1.0 / c - 1.0)
+
+
+@dataclass(frozen=True)
+class FocusUncertainty:
+    """How far off the in-focus power of an ROI estimate may be.
+
+    Attributes:
+        relative_error: median predicted relative error of ``1/d_o`` over the ROI's tiles.
+        model_dpt: that error in dioptres (``relative_error / d_o``).
+        spread_dpt: the inlier tiles' disagreement (weighted standard deviation, 1/m).
+        sigma_dpt: ``sqrt(model_dpt^2 + spread_dpt^2)`` (dpt).
+        blur_px: ``sigma_dpt`` as a geometric blur radius (px).
+    """
+
+    relative_error: float
+    model_dpt: float
+    spread_dpt: float
+    sigma_dpt: float
+    blur_px: float
+
+
+def estimate_uncertainty(aggregate: DepthAggregate, confidence: np.ndarray, mask: np.ndarray, camera: Camera,
+                         confidence_scale: float) -> FocusUncertainty:
+    """The uncertainty of an ROI's in-focus power from the model's own confidence and the tiles' agreement.
+
+    Args:
+        aggregate: the ROI's :class:`~tdfd.autofocus.aggregate.DepthAggregate`.
+        confidence: ``(h, w)`` per-tile confidence.
+        mask: ``(h, w)`` the ROI's tiles.
+        camera: thin-lens constants (blur per dioptre).
+        confidence_scale: the estimator's ``b0`` (see :func:`relative_error_scale`).
+
+    Returns:
+        A :class:`FocusUncertainty`; infinite if the ROI has no finite confidence.
+    """
+    c = np.asarray(confidence, dtype=np.float64)[np.asarray(mask, bool)]
+    c = c[np.isfinite(c)]
+    q = aggregate.inverse_depth
+    if c.size == 0 or not math.isfinite(q) or q <= 0:
+        return FocusUncertainty(math.inf, math.inf, aggregate.spread_dpt, math.inf, math.inf)
+    rel = float(np.median(relative_error_scale(c, confidence_scale)))
+    model = rel * q
+    sigma = math.hypot(model, aggregate.spread_dpt)
+    return FocusUncertainty(rel, model, aggregate.spread_dpt, sigma, sigma * blur_px_per_dpt(camera))
+
+
+# ------------------------------------------------------------------ relative blur
+def _gauss(image: np.ndarray, s: float) -> np.ndarray:
+    import cv2
+
+    return image if s <= 1e-3 else cv2.GaussianBlur(image, (0, 0), s, borderType=cv2.BORDER_REFLECT)
+
+
+def _kernel_energy(s: float) -> float:
+    """Sum of the squared taps of the 2-D Gaussian OpenCV applies for ``s`` (white-noise gain)."""
+    import cv2
+
+    if s <= 1e-3:
+        return 1.0
+    n = int(round(s * 4 * 2 + 1)) | 1  # OpenCV's kernel size for float images
+    g = cv2.getGaussianKernel(n, s).ravel()
+    return float((g * g).sum()) ** 2
+
+
+def relative_blur_px2(image_a: np.ndarray, image_b: np.ndarray, roi: Roi | None = None, *,
+                      max_px2: float = 64.0, margin_px: int = 12) -> float:
+    r"""Difference of Gaussian blur variances ``sigma_b^2 - sigma_a^2`` (px²) of two frames of one scene.
+
+    The sharper frame is blurred by a Gaussian of variance ``|D|`` until it matches the
+    other in the least-squares sense, with the blurred noise's share of the residual
+    subtracted (it would bias ``|D|`` upwards). No depth model is involved: the scene's
+    texture cancels. Blur of another shape (a pillbox) is matched by the Gaussian of about
+    the same second moment at small blur; at large blur the match is biased (measured in
+    docs/BENCHMARKS.md, ``reliability``), which is why :func:`verify_focus` weighs near
+    references more.
+
+    Args:
+        image_a, image_b: ``(H, W)`` linear intensity, same scene and exposure.
+        roi: region (default: the whole frame).
+        max_px2: the search range ``|D| <= max_px2``.
+        margin_px: border excluded from the residual (px).
+
+    Example:
+        >>> import cv2
+        >>> rng = np.random.default_rng(0)
+        >>> scene = cv2.GaussianBlur(rng.random((96, 96)).astype(np.float32), (0, 0), 0.7)
+        >>> blurred = cv2.GaussianBlur(scene, (0, 0), 2.0)
+        >>> round(relative_blur_px2(scene, blurred))
+        4
+    """
+    a = np.asarray(image_a, dtype=np.float32)
+    b = np.asarray(image_b, dtype=np.float32)
+    if a.shape != b.shape or a.ndim != 2:
+        raise InputError(f"frames must be (H, W) of one shape, got {a.shape} and {b.shape}")
+    if roi is not None:
+        a, b = roi.crop(a), roi.crop(b)
+    if min(a.shape) <= 2 * margin_px + 8:
+        raise InputError(f"ROI {a.shape} too small for the relative-blur measure (needs > {2 * margin_px + 8} px)")
+    na, nb = noise_variance(a), noise_variance(b)
+    inner = (slice(margin_px, -margin_px), slice(margin_px, -margin_px))
+
+    def cost(d: float) -> float:
+        if d >= 0:
+            s = math.sqrt(d)
+            r = _gauss(a, s) - b
+            noise = na * _kernel_energy(s) + nb
+        else:
+            s = math.sqrt(-d)
+            r = _gauss(b, s) - a
+            noise = nb * _kernel_energy(s) + na
+        return float(np.mean(r[inner].astype(np.float64) ** 2)) - noise
+
+    grid = np.geomspace(0.05, max_px2, 12)
+    grid = np.concatenate([-grid[::-1], [0.0], grid])
+    values = [cost(float(d)) for d in grid]
+    i = int(np.argmin(values))
+    lo, hi = float(grid[max(i - 1, 0)]), float(grid[min(i + 1, len(grid) - 1)])
+    g = (math.sqrt(5.0) - 1.0) / 2.0  # golden-section refinement inside the bracket
+    c, d = hi - g * (hi - lo), lo + g * (hi - lo)
+    fc, fd = cost(c), cost(d)
+    for _ in range(18):
+        if fc < fd:
+            hi, d, fd = d, c, fc
+            c = hi - g * (hi - lo)
+            fc = cost(c)
+        else:
+            lo, c, fc = c, d, fd
+            d = lo + g * (hi - lo)
+            fd = cost(d)
+    return 0.5 * (lo + hi)
+
+
+# ------------------------------------------------------------------ verification
+@dataclass(frozen=True)
+class FocusCheck:
+    """The verdict on a verification frame.
+
+    Attributes:
+        passed: the focus error is confirmed below ``tolerance_dpt``.
+        error_dpt: combined estimate of the focus error ``e = P_v - P*`` (dpt).
+        sigma_dpt: its standard uncertainty (dpt).
+        consistent: the references agree with each other within their uncertainties.
+        estimates: per reference ``(power_dpt, e_dpt, sigma_dpt)``.
+        reason: why it did not pass (``None`` if it passed).
+    """
+
+    passed: bool
+    error_dpt: float
+    sigma_dpt: float
+    consistent: bool
+    estimates: tuple[tuple[float, float, float], ...]
+    reason: str | None = None
+
+
+def verify_focus(frame: np.ndarray, power_dpt: float, references: Sequence[tuple[np.ndarray, float]], camera: Camera,
+                 roi: Roi | None = None, *, tolerance_dpt: float | None = None, z: float = 2.0,
+                 noise_px2: float = 0.12, relative_noise: float = 0.06, shape_range: tuple[float, float] = (0.85, 1.5),
+                 consistency_sigmas: float = 3.0) -> FocusCheck:
+    r"""Check a frame taken at ``power_dpt`` against frames of the same scene at other powers.
+
+    Each reference frame ``(image, P_k)`` gives ``D_k`` (:func:`relative_blur_px2`), which
+    the model ``D_k = alpha M^2 a_k (a_k + 2 e)``, ``a_k = P_k - P_v``, ties to the focus
+    error ``e = P_v - P*``. ``alpha`` is the ratio of the fitted Gaussian's variance to the
+    blur's: 1 for a Gaussian PSF, about 1.28 for a uniform disk on the bench, unknown for a
+    real lens, so it is fitted over ``shape_range`` together with ``e``: with two
+    references at different powers both are determined (the ratio ``D_1 / D_2`` does not
+    depend on ``alpha``); with one, the range of ``alpha`` widens the uncertainty. Each
+    ``D_k`` has the standard uncertainty ``noise_px2 + relative_noise |D_k|`` (px²).
+
+    The focus passes if ``|e| + z sigma_e <= tolerance_dpt`` and the references agree
+    (their chi-square at the best ``alpha`` within ``consistency_sigmas`` per degree of
+    freedom); ``sigma_e`` holds the measurement noise and the spread of ``e`` over the
+    ``alpha`` values the data allow (chi-square within 1 of its minimum).
+
+    Args:
+        frame: ``(H, W)`` the verification frame.
+        power_dpt: its ECVFL power ``P_v`` (dpt).
+        references: ``(image, power_dpt)`` of earlier frames of the run.
+        camera: thin-lens constants.
+        roi: region (default: whole frame).
+        tolerance_dpt: the largest focus error accepted (default: half a pixel of blur).
+        z: coverage factor on the uncertainty.
+        noise_px2, relative_noise, shape_range: the error model above, measured on the bench
+            (docs/BENCHMARKS.md, ``reliability``).
+        consistency_sigmas: see above.
+
+    Raises:
+        InputError: no reference frame.
+    """
+    if not references:
+        raise InputError("verify_focus needs at least one reference frame")
+    m2 = sigma_px_per_dpt(camera) ** 2
+    tol = 0.5 / blur_px_per_dpt(camera) if tolerance_dpt is None else float(tolerance_dpt)
+    # pairs (i, j) of frames at offsets b = P - P_v: the verification frame against each reference,
+    # and the first two references against each other (the DFD pair: a check on alpha and e)
+    frames = [(np.asarray(frame), 0.0)] + [(np.asarray(im), float(p) - float(power_dpt)) for im, p in references]
+    pairs = [(0, k) for k in range(1, len(frames)) if abs(frames[k][1]) >= 0.02]
+    if len(frames) >= 3 and abs(frames[1][1] - frames[2][1]) >= 0.02:
+        pairs.append((1, 2))
+    if not pairs:
+        return FocusCheck(False, math.nan, math.inf, False, (), "no reference frame at another power")
+    bi = np.array([frames[i][1] for i, _ in pairs])
+    bj = np.array([frames[j][1] for _, j in pairs])
+    d = np.array([relative_blur_px2(frames[i][0], frames[j][0], roi) for i, j in pairs])  # sigma_j^2 - sigma_i^2
+    sd = noise_px2 + relative_noise * np.abs(d)
+    a = bj - bi
+    alphas = np.linspace(shape_range[0], shape_range[1], 66)
+    e_k = (d[None, :] / (alphas[:, None] * m2 * a[None, :]) - (bi + bj)[None, :]) / 2.0  # (alpha, pair)
+    s_k = sd[None, :] / (2.0 * alphas[:, None] * m2 * np.abs(a[None, :]))
+    w = 1.0 / s_k**2
+    e_hat = (w * e_k).sum(1) / w.sum(1)
+    chi = (w * (e_k - e_hat[:, None]) ** 2).sum(1)
+    best = int(np.argmin(chi))
+    allowed = chi <= chi[best] + 1.0
+    spread = 0.5 * float(e_hat[allowed].max() - e_hat[allowed].min())
+    mean = float(e_hat[best])
+    sigma = math.hypot(float(1.0 / math.sqrt(w[best].sum())), spread)
+    dof = max(1, len(a) - 2)
+    consistent = bool(chi[best] <= consistency_sigmas**2 * dof) if len(a) > 2 else True
+    est = tuple((float(power_dpt) + float(bj_), float(ek), float(sk)) for bj_, ek, sk in zip(bj, e_k[best], s_k[best]))
+    reason = None
+    if not consistent:
+        reason = f"the reference frames disagree (focus errors {', '.join(f'{x:+.3f}' for _, x, _ in est)} dpt)"
+    elif abs(mean) + z * sigma > tol:
+        reason = f"focus error {mean:+.3f} +- {sigma:.3f} dpt exceeds {tol:.3f} dpt"
+    return FocusCheck(reason is None, mean, sigma, consistent, est, reason)
+
+
+def pair_focus_interval(image_f1: np.ndarray, power_f1_dpt: float, image_f2: np.ndarray, power_f2_dpt: float,
+                        camera: Camera, roi: Roi | None = None, *, shape_range: tuple[float, float] = (1.0, 1.3),
+                        noise_px2: float = 0.12, relative_noise: float = 0.06, z: float = 2.0) -> tuple[float, float]:
+    r"""The in-focus powers the DFD pair itself allows, measured without the depth model.
+
+    ``D = sigma_2^2 - sigma_1^2`` (:func:`relative_blur_px2`) and
+    ``D = alpha M^2 (P_2 - P_1)(P_1 + P_2 - 2 P*)`` give
+    ``P* = (P_1 + P_2)/2 - D / (2 alpha M^2 (P_2 - P_1))``; the interval spans ``alpha`` over
+    ``shape_range`` and ``D`` over ``z`` standard uncertainties. It is a second, independent
+    opinion on the model's estimate: a model that is confidently wrong lands outside it.
+
+    Returns:
+        ``(low, high)`` ECVFL powers (dpt).
+
+    Raises:
+        InputError: the two powers are equal.
+    """
+    dp = float(power_f2_dpt) - float(power_f1_dpt)
+    if abs(dp) < 0.02:
+        raise InputError("the DFD pair needs two different powers")
+    m2 = sigma_px_per_dpt(camera) ** 2
+    d = relative_blur_px2(image_f1, image_f2, roi)
+    sd = noise_px2 + relative_noise * abs(d)
+    mid = 0.5 * (float(power_f1_dpt) + float(power_f2_dpt))
+    cands = [mid - dd / (2.0 * a * m2 * dp) for a in shape_range for dd in (d - z * sd, d + z * sd)]
+    return min(cands), max(cands)
