@@ -40,7 +40,13 @@ def ack(p: float, t: float = 0.0) -> LensAck:
     return LensAck(p, t, t + 0.015)
 
 
-def frame(tag: str, p: float, t: float = 0.02, lens=None, image=IMG) -> Frame:
+# the same scene exposed again: sensor noise changes every pixel (a real pair is never identical)
+IMG2 = np.clip(IMG + RNG.normal(0, 0.002, IMG.shape), 0, 1).astype(np.float32)
+
+
+def frame(tag: str, p: float, t: float = 0.02, lens=None, image=None) -> Frame:
+    if image is None:
+        image = IMG2 if tag == "f2" else IMG
     return Frame(image, p, t, t + 0.002, t + 0.005, tag, lens=lens)
 
 
@@ -141,6 +147,42 @@ def test_capture_fault_retry_then_fail():
     assert isinstance(cmd, Capture) and cmd.tag == "f1" and cmd.then_power_dpt is None
     done = ctrl.step(CaptureFault("f1", "no frame"))
     assert isinstance(done, Done) and done.result.status == "failed" and "no frame" in done.result.error
+
+
+@pytest.mark.parametrize("f2_image,words", [
+    (IMG, "identical"),                     # the lens did not move / the camera returned the same buffer
+    (np.zeros_like(IMG), "second frame is black"),
+    (np.full_like(IMG, 1.0), "saturated"),
+])
+def test_a_pair_that_is_no_dfd_pair_is_a_capture_fault(f2_image, words):
+    """Never a depth from a broken pair: the pair is taken again, then the run fails and says why."""
+    ctrl = DFDController(CAM, capture_retries=1)
+    cmd = ctrl.start()
+    for attempt in range(2):
+        assert isinstance(cmd, SetPower) and cmd.power_dpt == P1, (attempt, cmd)
+        cmd = ctrl.step(ack(P1))
+        assert isinstance(cmd, Capture) and cmd.tag == "f1"
+        cmd = ctrl.step(frame("f1", P1, lens=ack(P2, 0.018)))
+        assert isinstance(cmd, Capture) and cmd.tag == "f2"
+        cmd = ctrl.step(frame("f2", P2, t=0.034, image=f2_image))
+        assert not isinstance(cmd, Estimate)  # the estimator is never asked
+    assert isinstance(cmd, Done)
+    res = cmd.result
+    assert res.status == "failed" and "capture fault" in res.error and words in res.error, res.error
+    assert res.frames == 4 and res.estimated_depth_m is None
+
+
+def test_a_good_pair_after_a_broken_one_is_estimated():
+    ctrl = DFDController(CAM, capture_retries=1)
+    ctrl.start()
+    ctrl.step(ack(P1))
+    ctrl.step(frame("f1", P1, lens=ack(P2, 0.018)))
+    cmd = ctrl.step(frame("f2", P2, t=0.034, image=IMG))  # identical: taken again
+    assert isinstance(cmd, SetPower) and cmd.power_dpt == P1
+    ctrl.step(ack(P1))
+    ctrl.step(frame("f1", P1, lens=ack(P2, 0.018)))
+    cmd = ctrl.step(frame("f2", P2, t=0.034))
+    assert isinstance(cmd, Estimate) and ctrl.result.frames == 4
 
 
 def test_estimate_fault_fails():

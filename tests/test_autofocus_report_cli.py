@@ -193,9 +193,9 @@ def test_hardware_dry_run_from_a_video_file(tmp_path, capsys):
     path = str(tmp_path / "cam.avi")
     writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"MJPG"), 10, (160, 128), isColor=True)
     rng = np.random.default_rng(0)
-    frame = (rng.uniform(0, 255, (128, 160, 3))).astype(np.uint8)
-    for _ in range(8):
-        writer.write(frame)
+    scene = rng.uniform(20, 235, (128, 160, 3))
+    for _ in range(8):  # one scene, exposed again and again: sensor noise changes every frame
+        writer.write(np.clip(scene + rng.normal(0, 3, scene.shape), 0, 255).astype(np.uint8))
     writer.release()
     rc = main(["autofocus", "--camera", path, "--dry-run", "--model", "analytic"])
     out = capsys.readouterr().out

@@ -16,6 +16,10 @@ One single-shot DFD focus (paper sec. 3, "focal length as the varying parameter"
 1. ``SetPower(P_e1)``, ``Capture("f1", then_power_dpt=P_e2)``: the first frame once the
    lens has settled; the move to ``P_e2`` is commanded at the end of its exposure.
 2. ``Capture("f2")`` once the lens has settled at ``P_e2``.
+   A pair that is no DFD pair (identical frames: the lens did not move; a black, much
+   darker or saturated frame; :func:`tdfd.pair_check.pair_problem`) is a capture fault:
+   the pair is taken again (``capture_retries``), then the run fails and says why; no
+   depth is ever taken from it.
 3. ``Estimate(f1, f2)``: the depth model (ONNX runtime, or any :class:`Estimator`).
 4. ROI aggregation (:func:`tdfd.autofocus.aggregate.aggregate_depth`): confidence-weighted median of inverse
    depth, then a trimmed weighted mean of the inliers.
@@ -53,7 +57,8 @@ Example:
     >>> cmd = ctrl.step(Frame(img, 1.7, 0.016, 0.017, 0.018, "f1", lens=LensAck(2.7, 0.017, 0.032)))
     >>> cmd.tag
     'f2'
-    >>> cmd = ctrl.step(Frame(img, 2.7, 0.033, 0.034, 0.035, "f2")); type(cmd).__name__
+    >>> img2 = img + np.random.default_rng(0).normal(0, 0.002, img.shape).astype(np.float32)  # sensor noise
+    >>> cmd = ctrl.step(Frame(img2, 2.7, 0.033, 0.034, 0.035, "f2")); type(cmd).__name__
     'Estimate'
     >>> depth = np.full((2, 2), 1 / 2.2, np.float32); conf = np.full((2, 2), 0.9, np.float32)
     >>> cmd = ctrl.step(Estimation(depth, conf, tile=64, stride=32, t_s=0.04))
@@ -76,7 +81,8 @@ from typing import Generator
 import numpy as np
 
 from ..camera import Camera, in_focus_power_dpt
-from ..errors import InputError
+from ..errors import DTypeError, InputError
+from ..pair_check import pair_problem
 from .aggregate import DepthAggregate, aggregate_depth
 from .contrast import ContrastSearch
 from .evidence import blur_px_per_dpt, estimate_uncertainty, pair_focus_interval, verify_focus
@@ -187,13 +193,20 @@ class DFDController(StateMachine):
         p1, p2 = self.camera.lens_powers_dpt
         res = self.result
         res.refocus_count += 1
-        if self.dry_run:
-            self.state = State.CAPTURE_F1
-            f1, _ = yield from self._capture("f1")
-            self.state = State.CAPTURE_F2
-            f2, _ = yield from self._capture("f2")
+        for attempt in range(self.capture_retries + 1):
+            if self.dry_run:
+                self.state = State.CAPTURE_F1
+                f1, _ = yield from self._capture("f1")
+                self.state = State.CAPTURE_F2
+                f2, _ = yield from self._capture("f2")
+            else:
+                f1, f2 = yield from self._capture_pair(p1, p2)
+            problem = self._pair_problem(f1, f2)
+            if problem is None:
+                break
+            log.warning("capture fault (pair %d of %d): %s", attempt + 1, self.capture_retries + 1, problem)
         else:
-            f1, f2 = yield from self._capture_pair(p1, p2)
+            raise Abort(f"capture fault: {problem}; no depth taken from this pair")
         self.state = State.ESTIMATE
         roi = self._roi_for(f1.image.shape[-2:])
         offset = (0, 0)
@@ -325,6 +338,16 @@ class DFDController(StateMachine):
         log.warning("%s: contrast-detect AF decides around %.3f dpt", reason, power)
         yield from self._contrast(power)
         return None
+
+    @staticmethod
+    def _pair_problem(f1: Frame, f2: Frame) -> str | None:
+        """Why the two frames are no DFD pair (:func:`tdfd.pair_check.pair_problem`: identical
+        frames, a black, much darker or saturated frame), or ``None``. Such a pair is a capture
+        fault: no estimator is asked to vouch for it."""
+        try:
+            return pair_problem(f1.image, f2.image)
+        except (InputError, DTypeError) as exc:  # frames of different shapes or dtypes
+            return str(exc)
 
     def _capture_pair(self, p1: float, p2: float) -> Generator[Command, Observation, tuple[Frame, Frame]]:
         """The DFD pair of one cycle: ``P_e1``, ``f1`` (then ``P_e2``), ``f2`` (a policy above may light it)."""
