@@ -1,0 +1,161 @@
+r"""Focus breathing from image registration: magnification between frames versus lens power.
+
+Two frames of one scene at ECVFL powers ``P_a`` and ``P_b`` differ by the magnification
+``rho = (1 + m P_a) / (1 + m P_b)`` about the optical centre (:mod:`tdfd.breathing`), so a
+region centred at ``x`` (relative to the centre) appears shifted by ``(rho - 1) x``. Each
+region's shift comes from phase correlation with a Hann window: the integer peak of the
+normalised cross-power spectrum, then the sub-pixel shift as the weighted least-squares
+slope of its phase at low frequencies (a symmetric defocus PSF has a real transfer
+function, so blur adds no phase); ``rho - 1`` is the least-squares slope of shift against position over the regions;
+``m`` is the least-squares fit of ``log rho`` against the power differences.
+
+Example:
+    >>> import numpy as np
+    >>> from tdfd.breathing import magnify
+    >>> x = np.random.default_rng(0).random((192, 192))
+    >>> rho, n = relative_magnification(x, magnify(x, 1.01), region=64)
+    >>> abs(rho - 1.01) < 5e-4, n
+    (True, 9)
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from ..errors import InputError
+from .focus import region_grid
+
+__all__ = ["relative_magnification", "region_shift", "fit_magnification_per_dpt", "MIN_RESPONSE"]
+
+#: phase-correlation peaks weaker than this are not used.
+MIN_RESPONSE = 0.05
+
+
+def _gauss(x: np.ndarray, sigma: float) -> np.ndarray:
+    import cv2
+
+    if sigma < 0.05:
+        return x
+    k = 2 * int(math.ceil(4 * sigma)) + 1
+    return cv2.GaussianBlur(x, (k, k), sigma, borderType=cv2.BORDER_REFLECT)
+
+
+def relative_magnification(reference: np.ndarray, moving: np.ndarray, region: int = 64,
+                           square_difference: np.ndarray | None = None) -> tuple[float, int]:
+    """Magnification of ``moving`` relative to ``reference`` about the image centre.
+
+    ``square_difference`` (``(rows, cols)``, ``sigma_ref^2 - sigma_moving^2`` in px^2, e.g.
+    from :func:`tdfd.calibration.measure.measure_pair`) equalises the blur first: the
+    sharper frame of each region is blurred by a Gaussian of ``sqrt(|D|)``, so that window
+    edges weigh both frames' content alike (unequal blur would otherwise move the phase).
+
+    Returns:
+        ``(rho, regions used)``; ``rho`` is NaN when fewer than 3 regions correlate.
+    """
+    a = np.asarray(reference, dtype=np.float64)
+    b = np.asarray(moving, dtype=np.float64)
+    if a.shape != b.shape or a.ndim != 2:
+        raise InputError(f"frames to register must be (H, W) of one size, got {a.shape} and {b.shape}")
+    rows, cols = region_grid(a.shape, region)
+    cy, cx = (a.shape[0] - 1) / 2.0, (a.shape[1] - 1) / 2.0
+    win = np.outer(np.hanning(region), np.hanning(region))
+    pos, shifts = [], []
+    for i in range(rows):
+        for j in range(cols):
+            sl = (slice(i * region, (i + 1) * region), slice(j * region, (j + 1) * region))
+            aa, bb = a, b
+            if square_difference is not None and np.isfinite(square_difference[i, j]):
+                dd = float(square_difference[i, j])
+                aa, bb = (a, _gauss(b, math.sqrt(dd))) if dd > 0 else (_gauss(a, math.sqrt(-dd)), b)
+            ra, rb = aa[sl] - aa[sl].mean(), bb[sl] - bb[sl].mean()
+            shift = region_shift(ra, rb, win)
+            if shift is None:
+                continue
+            dx, dy = shift
+            pos.append((j * region + (region - 1) / 2.0 - cx, i * region + (region - 1) / 2.0 - cy))
+            shifts.append((dx, dy))
+    if len(pos) < 3:
+        return math.nan, len(pos)
+    r, d = np.asarray(pos), np.asarray(shifts)
+    keep = np.ones(len(r), bool)
+    for _ in range(3):  # least squares, then drop regions far off the fitted magnification
+        den = float(np.sum(r[keep] ** 2))
+        if den <= 0:
+            return math.nan, int(keep.sum())
+        slope = float(np.sum(r[keep] * d[keep]) / den)
+        err = np.hypot(*(d - slope * r).T)
+        scale = max(1.4826 * float(np.median(err[keep])), 0.05)
+        new = err <= 3 * scale
+        if new.sum() < 3 or np.array_equal(new, keep):
+            break
+        keep = new
+    return 1.0 + slope, int(keep.sum())
+
+
+def region_shift(a: np.ndarray, b: np.ndarray, window: np.ndarray) -> tuple[float, float] | None:
+    """Sub-pixel shift ``(dx, dy)`` of ``b`` relative to ``a`` (same square size), or ``None``
+    when the correlation peak is weaker than :data:`MIN_RESPONSE` or the shift exceeds a
+    quarter of the region."""
+    n = a.shape[0]
+    fa, fb = np.fft.fft2(a * window), np.fft.fft2(b * window)
+    cross = fb * np.conj(fa)
+    mag = np.abs(cross)
+    if mag.max() <= 0:
+        return None
+    k = np.fft.fftfreq(n) * 2 * np.pi
+    ky, kx = np.meshgrid(k, k, indexing="ij")
+    radius = np.hypot(kx, ky)
+    # phase-only correlation over the band where defocused frames keep their signal
+    band = (radius < 0.5 * np.pi) * (n * n / max(int(np.sum(radius < 0.5 * np.pi)), 1))
+    corr = np.real(np.fft.ifft2(band * cross / np.maximum(mag, 1e-12 * mag.max())))
+    iy, ix = np.unravel_index(int(np.argmax(corr)), corr.shape)
+    if corr[iy, ix] < MIN_RESPONSE:
+        return None
+    dy0 = iy - n if iy > n // 2 else iy
+    dx0 = ix - n if ix > n // 2 else ix
+    # remove the integer shift, then fit the remaining phase -(kx dx + ky dy) at low frequency
+    phase = np.angle(cross * np.exp(1j * (kx * dx0 + ky * dy0)))
+    sel = (radius < 0.25 * np.pi) & (radius > 0)
+    w = mag[sel]
+    design = -np.stack([kx[sel], ky[sel]], 1)
+    lhs = design.T @ (design * w[:, None])
+    rhs = design.T @ (w * phase[sel])
+    try:
+        dx, dy = np.linalg.solve(lhs, rhs)
+    except np.linalg.LinAlgError:
+        return None
+    dx, dy = dx + dx0, dy + dy0
+    if abs(dx) > n / 4 or abs(dy) > n / 4:
+        return None
+    return float(dx), float(dy)
+
+
+def fit_magnification_per_dpt(powers_a: Sequence[float], powers_b: Sequence[float], rhos: Sequence[float],
+                              weights: Sequence[float] | None = None) -> tuple[float, np.ndarray]:
+    """Least-squares ``m`` from magnifications ``rho_k`` of frames at ``P_b`` relative to ``P_a``.
+
+    Model ``log rho = log(1 + m P_b) - log(1 + m P_a)`` (solved by Gauss-Newton from the
+    linearised ``m = sum(dP log rho) / sum(dP^2)``).
+
+    Returns:
+        ``(m, residuals of log rho)``.
+
+    Raises:
+        InputError: no usable measurement (all power differences zero or no finite rho).
+    """
+    pa, pb, r = (np.asarray(v, dtype=np.float64) for v in (powers_a, powers_b, rhos))
+    w = np.ones_like(r) if weights is None else np.asarray(weights, dtype=np.float64)
+    ok = np.isfinite(r) & (r > 0) & (pa != pb)
+    if ok.sum() < 1:
+        raise InputError("no frame pair registers: breathing cannot be measured (too little texture or too few frames)")
+    pa, pb, y, w = pa[ok], pb[ok], np.log(r[ok]), w[ok]
+    dp = pb - pa
+    m = float(np.sum(w * dp * y) / np.sum(w * dp * dp))
+    for _ in range(10):
+        model = np.log1p(m * pb) - np.log1p(m * pa)
+        jac = pb / (1 + m * pb) - pa / (1 + m * pa)
+        m += float(np.sum(w * jac * (y - model)) / np.sum(w * jac * jac))
+    return m, y - (np.log1p(m * pb) - np.log1p(m * pa))
