@@ -52,7 +52,9 @@ log = logging.getLogger(__name__)
 #: fewest sweep frames a self-calibration accepts.
 MIN_SWEEP_FRAMES = 5
 #: sweep-frame pairs are used only where the nominal camera predicts at most this blur (px).
-MAX_BLUR_PX = 4.0
+MAX_BLUR_PX = 3.0
+#: sweep frames this many times the camera's pair separation apart serve as pairs too.
+SWEEP_PAIR_SEPARATIONS = (0.5, 1.0)
 #: a region whose log focus measure varies less than this over the sweep has no texture.
 MIN_FOCUS_CONTRAST = 0.3
 
@@ -140,23 +142,27 @@ def _register(camera, a: CaptureFrame, b: CaptureFrame, region: int) -> tuple[fl
 
 
 def estimate_breathing(scenes: Sequence[Scene], region: int, camera) -> tuple[float, dict[str, Any]]:
-    """Breathing ``m`` from every scene's frames registered against its reference frame.
-
-    The reference is the sweep frame with the highest total focus measure (else each pair's
-    first frame). Returns ``(m, plot data)``; ``m = 0`` with a warning when nothing registers.
+    """Breathing ``m`` from registered frame pairs of each scene: its DFD pairs, and sweep
+    frames mirrored about the sharpest sweep frame (equal blur on both sides of focus),
+    within :data:`MAX_BLUR_PX` of focus by the nominal camera. Returns ``(m, plot data)``; ``m = 0`` with a warning when nothing registers.
     """
     pa, pb, rho, w = [], [], [], []
     for s in scenes:
+        todo = list(s.pairs)
         if len(s.sweep) >= 2:
+            # sweep frames mirrored about the sharpest one: equal blur, large power difference
             ref = max(s.sweep, key=lambda f: float(np.sum(np.log(focus_measure(f.image, region) + 1e-12))))
-            others = [f for f in s.sweep if f is not ref] + [f for pr in s.pairs for f in pr]
-            for f in others:
-                r, n = _register(camera, ref, f, region)
-                pa.append(ref.power_dpt), pb.append(f.power_dpt), rho.append(r), w.append(n)
-        else:
-            for a, b in s.pairs:
-                r, n = _register(camera, a, b, region)
-                pa.append(a.power_dpt), pb.append(b.power_dpt), rho.append(r), w.append(n)
+            step = float(np.median(np.diff([f.power_dpt for f in s.sweep])))
+            reach = MAX_BLUR_PX / (camera.mu_px_per_m * camera.blur_scale_m_dpt)
+            for a in s.sweep:
+                if a.power_dpt >= ref.power_dpt or ref.power_dpt - a.power_dpt > reach:
+                    continue
+                b = min(s.sweep, key=lambda f: abs(f.power_dpt + a.power_dpt - 2 * ref.power_dpt))
+                if b.power_dpt > ref.power_dpt and abs(b.power_dpt + a.power_dpt - 2 * ref.power_dpt) <= 0.6 * step:
+                    todo.append((a, b))
+        for a, b in todo:
+            r, n = _register(camera, a, b, region)
+            pa.append(a.power_dpt), pb.append(b.power_dpt), rho.append(r), w.append(n)
     try:
         m, res = fit_magnification_per_dpt(pa, pb, rho, w)
     except InputError as exc:
@@ -320,7 +326,9 @@ def calibrate_self(frames: Sequence[CaptureFrame], nominal: CameraFile, region: 
         peak_list.append(peaks)
         sweeps.append((powers, logf, peaks))
         centre = float(np.nanmedian(peaks))
-        pairs = list(s.pairs) + _sweep_pairs(s, separation, centre, MAX_BLUR_PX / k_nom)
+        pairs = list(s.pairs)
+        for sep in SWEEP_PAIR_SEPARATIONS:
+            pairs += _sweep_pairs(s, sep * separation, centre, MAX_BLUR_PX / k_nom)
         for a, b in pairs:
             pm = measure_pair(cam, a.image, b.image, a.power_dpt, b.power_dpt, region, m, (a.name, b.name))
             eqs.append((si, a.power_dpt, b.power_dpt, pm.square_difference, pm.confidence))
