@@ -138,7 +138,10 @@ class CalibrationResult:
 # ---------------------------------------------------------------------------- breathing
 def _register(camera, a: CaptureFrame, b: CaptureFrame, region: int) -> tuple[float, int]:
     pm = measure_pair(camera, a.image, b.image, a.power_dpt, b.power_dpt, region)
-    return relative_magnification(a.image, b.image, region, pm.square_difference)
+    # one blur difference for the frame (median over regions): per-region values are too
+    # noisy to match blur with, and calibration targets are planar
+    dsq = np.full_like(pm.square_difference, float(np.median(pm.square_difference)))
+    return relative_magnification(a.image, b.image, region, dsq)
 
 
 def estimate_breathing(scenes: Sequence[Scene], region: int, camera) -> tuple[float, dict[str, Any]]:

@@ -3,9 +3,8 @@ r"""Focus breathing from image registration: magnification between frames versus
 Two frames of one scene at ECVFL powers ``P_a`` and ``P_b`` differ by the magnification
 ``rho = (1 + m P_a) / (1 + m P_b)`` about the optical centre (:mod:`tdfd.breathing`), so a
 region centred at ``x`` (relative to the centre) appears shifted by ``(rho - 1) x``. Each
-region's shift comes from phase correlation with a Hann window: the integer peak of the
-normalised cross-power spectrum, then the sub-pixel shift as the weighted least-squares
-slope of its phase at low frequencies (a symmetric defocus PSF has a real transfer
+region's shift (Hann window) is the weighted least-squares slope of the cross spectrum's
+phase at low frequencies (:func:`region_shift`) (a symmetric defocus PSF has a real transfer
 function, so blur adds no phase); ``rho - 1`` is the least-squares slope of shift against position over the regions;
 ``m`` is the least-squares fit of ``log rho`` against the power differences.
 
@@ -33,8 +32,8 @@ __all__ = ["relative_magnification", "region_shift", "fit_magnification_per_dpt"
 
 #: Gaussian pre-smoothing (px) of both frames against sensor noise before the Laplacian.
 NOISE_SMOOTHING_PX = 1.0
-#: phase-correlation peaks weaker than this are not used.
-MIN_RESPONSE = 0.05
+#: regions whose mean coherence between the frames is below this are not used.
+MIN_RESPONSE = 0.3
 
 
 def _gauss(x: np.ndarray, sigma: float) -> np.ndarray:
@@ -130,39 +129,40 @@ def _magnification_once(reference: np.ndarray, moving: np.ndarray, region: int,
 
 
 def region_shift(a: np.ndarray, b: np.ndarray, window: np.ndarray) -> tuple[float, float] | None:
-    """Sub-pixel shift ``(dx, dy)`` of ``b`` relative to ``a`` (same square size), or ``None``
-    when the correlation peak is weaker than :data:`MIN_RESPONSE` or the shift exceeds a
-    quarter of the region."""
+    """Sub-pixel shift ``(dx, dy)`` of ``b`` relative to ``a`` (same square size, shifts of
+    up to about 2 px), or ``None`` when the regions do not correlate.
+
+    The phase of the cross spectrum, ``-(kx dx + ky dy)``, is fitted by weighted least
+    squares over ``0.05 pi < |k| < 0.35 pi`` rad/px (no phase wrap below ~2.8 px); each
+    frequency is weighted by its phase information ``gamma^2 / (1 - gamma^2)``, ``gamma^2``
+    the magnitude-squared coherence over 3x3 neighbouring frequencies, so noise-dominated
+    frequencies (random phase, which would dilute the slope) get no weight. Regions whose
+    mean coherence in the band is below :data:`MIN_RESPONSE` are refused.
+    """
     n = a.shape[0]
     fa, fb = np.fft.fft2(a * window), np.fft.fft2(b * window)
     cross = fb * np.conj(fa)
-    mag = np.abs(cross)
-    if mag.max() <= 0:
-        return None
     k = np.fft.fftfreq(n) * 2 * np.pi
     ky, kx = np.meshgrid(k, k, indexing="ij")
     radius = np.hypot(kx, ky)
-    # phase-only correlation over the band where defocused frames keep their signal
-    band = (radius < 0.5 * np.pi) * (n * n / max(int(np.sum(radius < 0.5 * np.pi)), 1))
-    corr = np.real(np.fft.ifft2(band * cross / np.maximum(mag, 1e-12 * mag.max())))
-    iy, ix = np.unravel_index(int(np.argmax(corr)), corr.shape)
-    if corr[iy, ix] < MIN_RESPONSE:
-        return None
-    dy0 = iy - n if iy > n // 2 else iy
-    dx0 = ix - n if ix > n // 2 else ix
-    # remove the integer shift, then fit the remaining phase -(kx dx + ky dy) at low frequency
-    phase = np.angle(cross * np.exp(1j * (kx * dx0 + ky * dy0)))
+
+    def box(z: np.ndarray) -> np.ndarray:
+        return sum(np.roll(np.roll(z, u, 0), v, 1) for u in (-1, 0, 1) for v in (-1, 0, 1))
+
+    g2 = np.abs(box(cross)) ** 2 / np.maximum(box(np.abs(fa) ** 2) * box(np.abs(fb) ** 2), 1e-300)
+    g2 = np.clip(g2, 0.0, 0.999)
     sel = (radius < 0.35 * np.pi) & (radius > 0.05 * np.pi)
-    w = mag[sel]
+    if float(np.mean(g2[sel])) < MIN_RESPONSE:
+        return None
+    w = (g2 / (1.0 - g2))[sel]
     design = -np.stack([kx[sel], ky[sel]], 1)
     lhs = design.T @ (design * w[:, None])
-    rhs = design.T @ (w * phase[sel])
+    rhs = design.T @ (w * np.angle(cross)[sel])
     try:
         dx, dy = np.linalg.solve(lhs, rhs)
     except np.linalg.LinAlgError:
         return None
-    dx, dy = dx + dx0, dy + dy0
-    if abs(dx) > n / 4 or abs(dy) > n / 4:
+    if not (abs(dx) <= 2.5 and abs(dy) <= 2.5):
         return None
     return float(dx), float(dy)
 
@@ -174,8 +174,9 @@ def fit_magnification_per_dpt(powers_a: Sequence[float], powers_b: Sequence[floa
     Model ``log rho = log(1 + m P_b) - log(1 + m P_a)`` (solved by Gauss-Newton from the
     linearised ``m = sum(dP log rho) / sum(dP^2)``).
 
-    Measurements more than 3 robust standard deviations (at least 2e-4) off the fit are
-    dropped (frames too blurred or too bare to register), up to three times.
+    Starts from the median of ``log rho / dP``; measurements more than 3 robust standard
+    deviations (at least 2e-4) off the fit are dropped (frames too blurred or too bare to
+    register) before each least-squares refit.
 
     Returns:
         ``(m, residuals of log rho)``.
@@ -190,17 +191,19 @@ def fit_magnification_per_dpt(powers_a: Sequence[float], powers_b: Sequence[floa
         raise InputError("no frame pair registers: breathing cannot be measured (too little texture or too few frames)")
     pa, pb, y, w = pa[ok], pb[ok], np.log(r[ok]), w[ok]
     dp = pb - pa
+    m = float(np.median(y / dp))  # robust start: frames that failed to register are far off
     keep = np.ones(len(y), bool)
-    for _ in range(3):  # fit, then drop measurements beyond 3 robust standard deviations
+    for _ in range(4):  # drop measurements beyond 3 robust standard deviations, then refit
+        res = y - (np.log1p(m * pb) - np.log1p(m * pa))
+        spread = max(1.4826 * float(np.median(np.abs(res[keep]))), 2e-4)
+        new = np.abs(res) <= 3 * spread
+        if new.sum() < 1:
+            break
+        keep = new
         m = float(np.sum((w * dp * y)[keep]) / np.sum((w * dp * dp)[keep]))
         for _ in range(10):
             model = np.log1p(m * pb) - np.log1p(m * pa)
             jac = pb / (1 + m * pb) - pa / (1 + m * pa)
             m += float(np.sum((w * jac * (y - model))[keep]) / np.sum((w * jac * jac)[keep]))
-        res = y - (np.log1p(m * pb) - np.log1p(m * pa))
-        spread = max(1.4826 * float(np.median(np.abs(res[keep]))), 2e-4)
-        new = np.abs(res) <= 3 * spread
-        if new.sum() < 2 or np.array_equal(new, keep):
-            break
-        keep = new
+    res = y - (np.log1p(m * pb) - np.log1p(m * pa))
     return m, res
