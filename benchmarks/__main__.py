@@ -24,6 +24,7 @@ BENCHMARKS = {
     "autofocus": "benchmarks.bench_autofocus",
     "paper": "benchmarks.paper_experiment",
     "overview": "benchmarks.overview_figure",
+    "calibration": "benchmarks.bench_calibration",
 }
 
 

@@ -362,26 +362,36 @@ def calibrate_self(frames: Sequence[CaptureFrame], nominal: CameraFile, region: 
         raise CalibrationError(f"the pairs give K^2 = {theta[0]:.4g} <= 0: the measurements disagree with the sweep")
     n_p = len(init)
     peaks0 = np.array(init)
-    for _ in range(iterations):  # Gauss-Newton, residuals in dioptres (weights frozen per step)
-        a = theta[0]
-        scale = 1.0 / (2 * a * np.abs(pa - pb))
-        r_pairs = (dsq - a * (pa - pb) * (pa + pb - 2 * theta[col])) * scale
-        j_pairs = np.zeros((len(obs), 1 + n_p))
-        j_pairs[:, 0] = -(pa - pb) * (pa + pb - 2 * theta[col]) * scale
-        j_pairs[np.arange(len(obs)), col] = 2 * a * (pa - pb) * scale
-        r_peaks = theta[1:] - peaks0
-        j_peaks = np.hstack([np.zeros((n_p, 1)), np.eye(n_p)])
-        jac = np.vstack([j_pairs, j_peaks])
-        res = np.concatenate([r_pairs, r_peaks])
-        step, *_ = np.linalg.lstsq(jac, -res, rcond=None)
-        theta += step
-        if abs(step[0]) < 1e-10 * abs(theta[0]) and np.max(np.abs(step[1:])) < 1e-9:
+    keep = np.ones(len(obs), bool)
+    for _ in range(3):  # Gauss-Newton, then drop pair measurements beyond 3 robust sigmas and refit
+        for _ in range(iterations):  # residuals in dioptres (weights frozen per step)
+            a = theta[0]
+            scale = 1.0 / (2 * a * np.abs(pa - pb))
+            r_pairs = (dsq - a * (pa - pb) * (pa + pb - 2 * theta[col])) * scale
+            j_pairs = np.zeros((len(obs), 1 + n_p))
+            j_pairs[:, 0] = -(pa - pb) * (pa + pb - 2 * theta[col]) * scale
+            j_pairs[np.arange(len(obs)), col] = 2 * a * (pa - pb) * scale
+            r_peaks = theta[1:] - peaks0
+            j_peaks = np.hstack([np.zeros((n_p, 1)), np.eye(n_p)])
+            jac = np.vstack([j_pairs[keep], j_peaks])
+            res = np.concatenate([r_pairs[keep], r_peaks])
+            step, *_ = np.linalg.lstsq(jac, -res, rcond=None)
+            theta += step
+            if abs(step[0]) < 1e-10 * abs(theta[0]) and np.max(np.abs(step[1:])) < 1e-9:
+                break
+        r_all = (dsq - theta[0] * (pa - pb) * (pa + pb - 2 * theta[col])) / (2 * theta[0] * np.abs(pa - pb))
+        spread = max(1.4826 * float(np.median(np.abs(r_all[keep]))), 0.005)
+        new = np.abs(r_all) <= 3 * spread
+        if np.array_equal(new, keep) or new.sum() < 2:
             break
+        keep = new
+    if (~keep).any():
+        log.info("self-calibration: %d of %d pair measurements dropped as outliers", int((~keep).sum()), len(keep))
     a2 = theta[0]
     if not a2 > 0:
         raise CalibrationError(f"the joint fit gives K^2 = {a2:.4g} <= 0")
     k = math.sqrt(a2)
-    r_pairs = (dsq - a2 * (pa - pb) * (pa + pb - 2 * theta[col])) / (2 * a2 * np.abs(pa - pb))
+    r_pairs = ((dsq - a2 * (pa - pb) * (pa + pb - 2 * theta[col])) / (2 * a2 * np.abs(pa - pb)))[keep]
     r_peaks = theta[1:] - peaks0
     fitted_peaks = [np.full(shape, np.nan) for _ in scenes]
     for (si, i, j), c in index.items():
@@ -398,7 +408,7 @@ def calibrate_self(frames: Sequence[CaptureFrame], nominal: CameraFile, region: 
     prov = _provenance("self", source, nominal_path, len(frames), k, b_fit, nominal, m, residuals)
     prov["scenes"] = [{"label": s.label, "sweep_frames": len(s.sweep), "pairs": len(s.pairs),
                        "in_focus_power_dpt_median": float(np.nanmedian(fp))} for s, fp in zip(scenes, fitted_peaks)]
-    x_def = (pa + pb) / 2 - theta[col]  # pair midpoint minus fitted in-focus power
+    x_def = ((pa + pb) / 2 - theta[col])[keep]  # pair midpoint minus fitted in-focus power
     plot = {"route": "self", "sweeps": sweeps, "fitted_peaks": fitted_peaks, "x_def": x_def,
-            "d_over_dp": dsq / (pa - pb), "a2": a2, "breathing": breath, "labels": [s.label for s in scenes]}
+            "d_over_dp": (dsq / (pa - pb))[keep], "a2": a2, "dropped": int((~keep).sum()), "breathing": breath, "labels": [s.label for s in scenes]}
     return CalibrationResult(_fitted_file(nominal, k, b_fit, m, prov), "self", k, b_fit, source, m, residuals, plot)
