@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     cam = result.camera_file.camera
     print(f"  K = {result.k_px_per_dpt:.5g} px/dpt  ->  mu = {cam.mu_px_per_m:.5g} px/m "
           f"(nominal {nominal.camera.mu_px_per_m:.5g})")
-    print(f"  in-focus offset B = {result.in_focus_offset_dpt:+.4f} dpt from {result.offset_source}")
+    print(f"  in-focus offset B = {result.in_focus_offset_dpt:+.4f} dpt ({result.offset_source})")
     print(f"  -> fixed_focal_length_m = {cam.fixed_focal_length_m:.6g} (nominal {nominal.camera.fixed_focal_length_m:.6g}); "
           f"power offset vs datasheet {result.camera_file.calibration['power_offset_vs_datasheet_dpt']:+.4f} dpt")
     print(f"  breathing: magnification_per_dpt = {result.magnification_per_dpt:.5g} ({100 * result.magnification_per_dpt:.3f} %/dpt)")

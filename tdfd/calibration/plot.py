@@ -81,7 +81,7 @@ def plot_calibration(result: CalibrationResult, path: str | os.PathLike) -> Path
         a.grid(alpha=0.3)
     cam = result.camera_file.camera
     fig.suptitle(f"tdfd calibrate ({result.route}): mu = {cam.mu_px_per_m:.4g} px/m, "
-                 f"f0 = {1000 * cam.fixed_focal_length_m:.4f} mm; in-focus offset from {result.offset_source}",
+                 f"f0 = {1000 * cam.fixed_focal_length_m:.4f} mm; in-focus offset B: {result.offset_source}",
                  fontsize=9)
     fig.tight_layout()
     p = Path(path)
