@@ -123,3 +123,15 @@ def test_simulated_rig_physics() -> None:
     assert rig.in_focus_command_dpt() == pytest.approx(2.0 - 0.3)
     assert rig.sigma_px(rig.in_focus_command_dpt()) == pytest.approx(0.0, abs=1e-9)
     assert rig.sigma_px(2.7) == pytest.approx(ref.mu_px_per_m * ref.blur_scale_m_dpt * 1.0)
+
+
+def test_hardware_cli_opens_only_what_it_is_given_and_closes_on_failure(tmp_path, capsys) -> None:
+    with EmulatorServer(settling_time_s=0.0) as srv:
+        rc = main(["capture", str(tmp_path / "c"), "--port", srv.port, "--camera", str(tmp_path / "no-such.avi"),
+                   "--sweep", "0:1:0.5"])
+        assert rc == 1
+        assert "cannot open camera" in capsys.readouterr().err
+        assert srv.device.commands.count("Start") == 1  # the lens was opened (handshake) ...
+        with OptotuneLens.open(srv.port, timeout_s=0.5) as again:  # ... and its port closed again
+            assert again.firmware_type == "A"
+    assert not (tmp_path / "c").exists()
