@@ -26,6 +26,7 @@ BENCHMARKS = {
     "reliability": "benchmarks.bench_reliability",
     "paper": "benchmarks.paper_experiment",
     "overview": "benchmarks.overview_figure",
+    "calibration": "benchmarks.bench_calibration",
 }
 
 

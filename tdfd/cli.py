@@ -23,6 +23,8 @@ SUBCOMMAND_MODULES: list[str] = [
     "tdfd.depth_cli",
     "tdfd.driver.cli",
     "tdfd.autofocus.cli",
+    "tdfd.capture.cli",
+    "tdfd.calibration.cli",
 ]
 
 

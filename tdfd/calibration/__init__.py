@@ -1,0 +1,23 @@
+"""Camera calibration from a capture folder: sweeps, pairs, breathing; ``tdfd calibrate``.
+
+The names below load on first use (PEP 562), so that building the ``tdfd`` command line
+(which imports :mod:`tdfd.calibration.cli`) does not import torch: ``tdfd depth`` runs
+without it.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+__all__ = ["CalibrationError", "CalibrationResult", "calibrate_known_distance", "calibrate_self",
+           "in_focus_power_from_pair", "measure_pair"]
+
+_WHERE = {"CalibrationError": "fit", "CalibrationResult": "fit", "calibrate_known_distance": "fit",
+          "calibrate_self": "fit", "in_focus_power_from_pair": "measure", "measure_pair": "measure"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _WHERE:
+        return getattr(importlib.import_module(f".{_WHERE[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,0 +1,121 @@
+"""Camera JSON files: the ``tdfd.camera`` contract object plus documented extra keys.
+
+A camera file holds the ``tdfd.camera`` object of CONTRACT.md section 2 (SI units), read by
+:meth:`tdfd.camera.Camera.from_dict`, and may add:
+
+* ``magnification_per_dpt`` (1/dpt): focus breathing. The image scale at ECVFL power ``P``
+  is ``1 + m P`` (relative), so two frames at ``P1`` and ``P2`` differ in magnification by
+  about ``m (P1 - P2)``; positive when the image grows with power. Written by
+  ``tdfd calibrate``; 0 when absent.
+* ``ecvfl_offset_dpt`` (dpt): only in files describing a *simulated* true camera
+  (``tdfd capture --sim``): the lens's real power is the commanded one plus this offset.
+  A calibrated camera absorbs the offset into ``fixed_focal_length_m`` instead.
+* ``calibration``: provenance written by ``tdfd calibrate`` (route, inputs, residuals).
+
+Other keys are kept in :attr:`CameraFile.extra` and ignored.
+
+Example:
+    >>> from tdfd import Camera
+    >>> cf = CameraFile.from_dict({**Camera.preset("reference").to_dict(), "magnification_per_dpt": 0.004})
+    >>> cf.magnification_per_dpt, cf.ecvfl_offset_dpt
+    (0.004, 0.0)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .camera import Camera
+from .errors import CameraError
+
+__all__ = ["CameraFile", "load_camera_file", "EXTRA_KEYS"]
+
+#: keys a camera file may add to the ``tdfd.camera`` object.
+EXTRA_KEYS = ("magnification_per_dpt", "ecvfl_offset_dpt", "calibration")
+
+
+def _number(data: dict, key: str, source: str) -> float:
+    v = data.get(key, 0.0)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+        raise CameraError(f"{source}: {key!r} must be a finite number, got {v!r}")
+    return float(v)
+
+
+@dataclass(frozen=True)
+class CameraFile:
+    """A camera description with focus breathing (and, for simulation, an ECVFL offset).
+
+    Attributes:
+        camera: the :class:`~tdfd.camera.Camera`.
+        magnification_per_dpt: relative image scale per dioptre of ECVFL power (1/dpt).
+        ecvfl_offset_dpt: real minus commanded ECVFL power (simulated true cameras only).
+        calibration: provenance dictionary, or ``None``.
+        extra: other keys, kept and unused.
+    """
+
+    camera: Camera
+    magnification_per_dpt: float = 0.0
+    ecvfl_offset_dpt: float = 0.0
+    calibration: dict[str, Any] | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def scale_at(self, power_dpt: float) -> float:
+        """Relative image scale ``1 + m P`` at ECVFL power ``P``."""
+        return 1.0 + self.magnification_per_dpt * float(power_dpt)
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = dict(self.extra)
+        out.update(self.camera.to_dict())
+        out["magnification_per_dpt"] = self.magnification_per_dpt
+        if self.ecvfl_offset_dpt:
+            out["ecvfl_offset_dpt"] = self.ecvfl_offset_dpt
+        if self.calibration is not None:
+            out["calibration"] = self.calibration
+        return out
+
+    def write(self, path: str | os.PathLike) -> Path:
+        """Write as indented JSON; returns the path."""
+        p = Path(path)
+        p.write_text(json.dumps(self.to_dict(), indent=1, sort_keys=True) + "\n")
+        return p
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "camera file") -> "CameraFile":
+        """Parse a camera object (raises :class:`~tdfd.errors.CameraError`, naming ``source``)."""
+        if not isinstance(data, dict):
+            raise CameraError(f"{source}: a camera file holds one JSON object")
+        try:
+            cam = Camera.from_dict(data, name=str(data.get("name", Path(source).stem)))
+        except CameraError as exc:
+            raise CameraError(f"{source}: {exc}") from exc
+        m = _number(data, "magnification_per_dpt", source)
+        if abs(m) >= 0.1:
+            raise CameraError(f"{source}: magnification_per_dpt {m} is implausible (|m| < 0.1 per dioptre expected)")
+        cal = data.get("calibration")
+        known = set(EXTRA_KEYS) | set(cam.to_dict()) | {"name"}
+        return cls(camera=cam, magnification_per_dpt=m, ecvfl_offset_dpt=_number(data, "ecvfl_offset_dpt", source),
+                   calibration=cal if isinstance(cal, dict) else None,
+                   extra={k: v for k, v in data.items() if k not in known})
+
+
+def load_camera_file(path: str | os.PathLike) -> CameraFile:
+    """Read a camera JSON file.
+
+    Raises:
+        CameraError: missing or unreadable file, invalid JSON, or an invalid camera.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise CameraError(f"{p}: cannot read the camera file: {exc.strerror or exc}") from exc
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise CameraError(f"{p}: invalid JSON: {exc}") from exc
+    return CameraFile.from_dict(data, str(p))
