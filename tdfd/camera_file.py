@@ -3,6 +3,15 @@
 A camera file holds the ``tdfd.camera`` object of CONTRACT.md section 2 (SI units), read by
 :meth:`tdfd.camera.Camera.from_dict`, and may add:
 
+* ``sensor_distances_m`` ([m, m]): per-frame sensor distances ``[d_s1, d_s2]`` for a camera
+  whose sensor moves between the two frames (paper, remark after eq. 13); ``d_s1`` equals
+  ``sensor_distance_m`` (which may then be left out). Frame 2's image is ``d_s2/d_s1`` times
+  frame 1's; :func:`tdfd.dfd.register_sensor_pair` rescales it before the estimator.
+* ``apertures_m`` ([m, m]): per-frame aperture diameters ``[A1, A2]`` (Pentland's aperture
+  DFD); ``A1`` equals ``aperture_m``. Either key may come with equal or with different
+  ``lens_powers_dpt``; a key whose two values are equal means no variation. Read and
+  written by :class:`~tdfd.camera.Camera` itself (``to_dict``/``from_dict``).
+
 * ``magnification_per_dpt`` (1/dpt): focus breathing. The image scale at ECVFL power ``P``
   is ``1 + m P`` (relative), so two frames at ``P1`` and ``P2`` differ in magnification by
   about ``m (P1 - P2)``; positive when the image grows with power. Written by
@@ -97,7 +106,7 @@ class CameraFile:
         if abs(m) >= 0.1:
             raise CameraError(f"{source}: magnification_per_dpt {m} is implausible (|m| < 0.1 per dioptre expected)")
         cal = data.get("calibration")
-        known = set(EXTRA_KEYS) | set(cam.to_dict()) | {"name"}
+        known = set(EXTRA_KEYS) | set(cam.to_dict()) | {"name", "sensor_distances_m", "apertures_m"}
         return cls(camera=cam, magnification_per_dpt=m, ecvfl_offset_dpt=_number(data, "ecvfl_offset_dpt", source),
                    calibration=cal if isinstance(cal, dict) else None,
                    extra={k: v for k, v in data.items() if k not in known})
