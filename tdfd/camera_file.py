@@ -33,16 +33,20 @@ Example:
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .camera import Camera
+from .camera import PRESETS, Camera
 from .errors import CameraError
 
-__all__ = ["CameraFile", "load_camera_file", "EXTRA_KEYS"]
+logger = logging.getLogger(__name__)
+_WARNED: set = set()  # camera files already warned about (resolve_camera), once per process
+
+__all__ = ["CameraFile", "load_camera_file", "resolve_camera", "EXTRA_KEYS"]
 
 #: keys a camera file may add to the ``tdfd.camera`` object.
 EXTRA_KEYS = ("magnification_per_dpt", "ecvfl_offset_dpt", "calibration")
@@ -128,3 +132,36 @@ def load_camera_file(path: str | os.PathLike) -> CameraFile:
     except json.JSONDecodeError as exc:
         raise CameraError(f"{p}: invalid JSON: {exc}") from exc
     return CameraFile.from_dict(data, str(p))
+
+
+def resolve_camera(spec: str | os.PathLike) -> Camera:
+    """A camera from a preset name (``reference``, ``paper``) or a camera JSON file.
+
+    What ``python -m training --set model.camera=...`` and ``python -m export --camera ...``
+    accept. A name that is a preset is the preset; anything else is read as a file
+    (:func:`load_camera_file`). Keys the model does not use yet are logged:
+    ``magnification_per_dpt`` (the model does not register breathing) and
+    ``ecvfl_offset_dpt`` (a simulated true camera's offset, not a calibrated camera).
+
+    Raises:
+        CameraError: neither a preset nor a readable, valid camera file (the message names
+            the file, or lists the presets).
+    """
+    text = os.fspath(spec)
+    if text in PRESETS:
+        return Camera.preset(text)
+    path = Path(text)
+    if path.suffix.lower() != ".json" and not path.exists():
+        raise CameraError(f"camera {text!r} is neither a preset ({sorted(PRESETS)}) nor a camera JSON file")
+    cf = load_camera_file(path)
+    key = (str(path.resolve()), cf.magnification_per_dpt, cf.ecvfl_offset_dpt)
+    if key in _WARNED:
+        return cf.camera
+    _WARNED.add(key)
+    if cf.magnification_per_dpt:
+        logger.warning("%s: magnification_per_dpt %g is not used by the model (no breathing registration in it)",
+                       path, cf.magnification_per_dpt)
+    if cf.ecvfl_offset_dpt:
+        logger.warning("%s: ecvfl_offset_dpt %g is ignored: it describes a simulated true camera, not a calibrated one",
+                       path, cf.ecvfl_offset_dpt)
+    return cf.camera
