@@ -27,6 +27,7 @@ BENCHMARKS = {
     "paper": "benchmarks.paper_experiment",
     "overview": "benchmarks.overview_figure",
     "calibration": "benchmarks.bench_calibration",
+    "camera_pairs": "benchmarks.bench_camera_pairs",
 }
 
 

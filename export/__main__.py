@@ -8,6 +8,12 @@ Loads :class:`tdfd.model.DFDModel` from ``<stem>.safetensors`` + ``<stem>.json``
 (:func:`export.export_model`), then runs :func:`export.verify_onnx` (checker, contract,
 ONNX Runtime versus torch on rendered pairs). Exit status 1 with a one-line error when
 anything fails; ``--analytic`` exports the bare analytic layer instead (for development).
+
+``--camera PRESET|FILE.json`` names the camera (a preset or a camera JSON file,
+:func:`tdfd.camera_file.resolve_camera`): the analytic layer's camera with ``--analytic``
+(default ``reference``); with ``--weights`` a check that the trained model was built for
+that camera (a model is trained for one camera: ``python -m training --set
+model.camera=FILE.json``), refused when it was not.
 """
 
 from __future__ import annotations
@@ -34,7 +40,10 @@ def build_parser() -> argparse.ArgumentParser:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--weights", type=Path, help="trained model: <stem>.safetensors (with <stem>.json beside it)")
     src.add_argument("--analytic", action="store_true",
-                     help="export the analytic layer alone (reference camera, depth_analytic = depth)")
+                     help="export the analytic layer alone (depth_analytic = depth; camera from --camera)")
+    p.add_argument("--camera", default=None, metavar="PRESET|FILE.json",
+                   help="camera preset or camera JSON file: the --analytic layer's camera (default reference), "
+                        "or the camera a --weights model must have been trained for")
     p.add_argument("--out", type=Path, required=True, help="output .onnx file")
     p.add_argument("--opset", type=int, default=18, help="ONNX opset (>= 18, default 18)")
     p.add_argument("--no-optimize", action="store_true", help="skip the ONNX optimiser")
@@ -59,14 +68,22 @@ def main(argv: list[str] | None = None) -> int:
     from .verify import verify_onnx
 
     try:
+        from tdfd.camera_file import resolve_camera
+
+        camera = resolve_camera(args.camera) if args.camera is not None else None
         if args.analytic:
             from .standin import analytic_model
 
-            model = analytic_model()
+            model = analytic_model(camera)
         else:
+            from tdfd.errors import ModelError
             from tdfd.model import DFDModel
 
             model = DFDModel.load(args.weights)
+            if camera is not None and camera != model.camera:
+                raise ModelError(f"{args.weights} was trained for camera {model.camera.to_dict()}, not for "
+                                 f"{args.camera} ({camera.to_dict()}); train one for it with "
+                                 f"python -m training --set model.camera={args.camera}")
         model.eval()
         t0 = time.perf_counter()
         path = export_model(model, args.out, opset=args.opset, optimize=not args.no_optimize)

@@ -38,7 +38,9 @@ import torch
 from torch import nn
 
 import tdfd
-from tdfd.contract import CAMERA_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET, MODEL_KEY, OUTPUT_NAMES, VERSION_KEY
+from tdfd.contract import (CAMERA_KEY, COVERAGE_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET, MODEL_KEY,
+                           OUTPUT_NAMES, VERSION_KEY)
+from tdfd.coverage import camera_coverage
 from tdfd.errors import ModelError
 
 __all__ = ["INPUT_NAMES", "OUTPUT_NAMES", "METADATA_KEYS", "MIN_OPSET", "export_model", "onnx_metadata"]
@@ -61,14 +63,17 @@ def onnx_metadata(model: nn.Module) -> dict[str, str]:
 
     ``tdfd.camera`` is ``json.dumps(model.camera.to_dict())``, ``tdfd.grid`` is
     ``{"tile", "stride"}``, ``tdfd.version`` the exporting package version (a JSON string
-    literal such as ``"0.1.0"``). A model with a ``config()`` method (``DFDModel``) also
-    gets ``tdfd.model``, its full description (informational).
+    literal such as ``"0.1.0"``), ``tdfd.coverage`` which cameras the model covers (both
+    frames' blur range in px over the camera's working range, :mod:`tdfd.coverage`). A model
+    with a ``config()`` method (``DFDModel``) also gets ``tdfd.model``, its full description
+    (informational).
     """
     _check_model(model)
     meta = {
         CAMERA_KEY: json.dumps(model.camera.to_dict()),
         GRID_KEY: json.dumps({"tile": int(model.tile), "stride": int(model.stride)}),
         VERSION_KEY: json.dumps(tdfd.__version__),
+        COVERAGE_KEY: json.dumps(camera_coverage(model.camera)),
     }
     config = getattr(model, "config", None)
     if callable(config):

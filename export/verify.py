@@ -37,7 +37,8 @@ from tdfd.forward import Defocus, DFDForward, IdealSensor, PlanePairs
 from tdfd.grid import grid_shape
 from tdfd.sensor import SensorModel
 
-from tdfd.contract import CAMERA_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET, OUTPUT_NAMES
+from tdfd.contract import CAMERA_KEY, COVERAGE_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET, OUTPUT_NAMES
+from tdfd.coverage import camera_coverage, check_coverage
 
 from .onnx_export import _export_mode
 
@@ -127,7 +128,16 @@ def check_contract(proto: onnx.ModelProto, model: nn.Module | None = None) -> di
     grid = parsed[GRID_KEY]
     if not isinstance(grid, dict) or sorted(grid) != ["stride", "tile"]:
         raise ModelError(f"metadata 'tdfd.grid' must be {{'tile', 'stride'}}, got {grid!r}")
+    if COVERAGE_KEY in meta:  # optional: which cameras the model covers (tdfd.coverage)
+        try:
+            parsed[COVERAGE_KEY] = json.loads(meta[COVERAGE_KEY])
+        except json.JSONDecodeError as exc:
+            raise ModelError(f"metadata {COVERAGE_KEY!r} is not JSON: {exc}") from exc
+        check_coverage(camera, parsed[COVERAGE_KEY], camera, "the file")  # well formed, covers its own camera
     if model is not None:
+        if COVERAGE_KEY in parsed and parsed[COVERAGE_KEY] != camera_coverage(model.camera):
+            raise ModelError(f"metadata coverage {parsed[COVERAGE_KEY]} differs from the model's "
+                             f"{camera_coverage(model.camera)}")
         if parsed[CAMERA_KEY] != model.camera.to_dict():
             raise ModelError(f"metadata camera {parsed[CAMERA_KEY]} differs from the model's {model.camera.to_dict()}")
         if (grid["tile"], grid["stride"]) != (int(model.tile), int(model.stride)):

@@ -5,6 +5,14 @@ with ``f0`` the fixed lens focal length and ``P_e`` the electronically set ECVFL
 The DFD pair is captured at two ECVFL powers ``(P_e1, P_e2)``, i.e. two focal lengths
 ``(F1, F2)`` (paper sec. 3, "focal length as the varying parameter").
 
+Other varying parameters (paper sec. 3, the remark after eq. 13; Pentland's aperture DFD):
+a camera may also give each frame its own sensor distance (``sensor_distances_m``) or
+aperture (``apertures_m``), with or without two different ECVFL powers. Frame ``i`` then
+blurs by eq. 4 with the subscript where the parameter varies,
+``sigma_i = mu (A_i/2) d_s,i (1/F_i - 1/d_o - 1/d_s,i)``. The scalar ``sensor_distance_m``
+and ``aperture_m`` are frame 1's (``image_f1``); in-focus powers and image scale refer to
+frame 1.
+
 The blur-parameter constant ``mu`` (paper eq. 4, ``sigma = mu * r_b``) is stored in pixels
 per metre of blur-circle radius, so ``sigma`` is in pixels. For the ``reference`` preset it
 is ``1 / (2 * pixel_pitch)``: the Gaussian whose per-axis variance equals that of a uniform
@@ -70,11 +78,18 @@ class Camera:
         depth_range_m: working range ``(near, far)`` in metres.
         mu_px_per_m: blur-parameter constant ``mu`` (``sigma[px] = mu * r_b[m]``).
         sensor_size_px: sensor ``(height, width)`` in pixels (not part of the contract JSON).
+        sensor_distances_m: optional per-frame sensor distances ``(d_s1, d_s2)`` in metres
+            (JSON key ``sensor_distances_m``); ``d_s1`` must equal ``sensor_distance_m``.
+            ``None`` (or two equal values): both frames at ``sensor_distance_m``.
+        apertures_m: optional per-frame aperture diameters ``(A1, A2)`` in metres (JSON key
+            ``apertures_m``); ``A1`` must equal ``aperture_m``. ``None``: both at ``aperture_m``.
         name: a label (not part of the contract JSON).
 
     Raises:
-        CameraError: for non-finite or non-positive quantities, equal lens powers, or an
-            inverted depth range.
+        CameraError: for non-finite or non-positive quantities, two frames that do not
+            differ (same power, sensor distance and aperture), an inverted depth range, or a
+            working range that straddles the depth where ``sigma1^2 - sigma2^2`` turns
+            (two depths in range would give the same blur pair).
     """
 
     aperture_m: float
@@ -85,6 +100,8 @@ class Camera:
     depth_range_m: tuple[float, float]
     mu_px_per_m: float
     sensor_size_px: tuple[int, int] = (1200, 1600)
+    sensor_distances_m: tuple[float, float] | None = None
+    apertures_m: tuple[float, float] | None = None
     name: str = field(default="custom", compare=False)
 
     def __post_init__(self) -> None:
@@ -101,8 +118,12 @@ class Camera:
         except (TypeError, ValueError) as exc:
             raise CameraError("lens_powers_dpt, depth_range_m and sensor_size_px must be pairs") from exc
         p1, p2 = _finite("lens_powers_dpt[0]", p1), _finite("lens_powers_dpt[1]", p2)
-        if p1 == p2:
-            raise CameraError("the two ECVFL powers must differ for depth from defocus")
+        set_(self, "sensor_distances_m", self._per_frame("sensor_distances_m", self.sensor_distances_m,
+                                                         "sensor_distance_m", self.sensor_distance_m))
+        set_(self, "apertures_m", self._per_frame("apertures_m", self.apertures_m, "aperture_m", self.aperture_m))
+        if p1 == p2 and self.sensor_distances_m is None and self.apertures_m is None:
+            raise CameraError("the two frames must differ for depth from defocus: give two ECVFL powers, "
+                              "two sensor distances (sensor_distances_m) or two apertures (apertures_m)")
         near, far = _positive("depth_range_m[0]", near), _positive("depth_range_m[1]", far)
         if not near < far:
             raise CameraError(f"depth_range_m must be (near, far) with near < far, got {(near, far)}")
@@ -112,6 +133,25 @@ class Camera:
         for p in (p1, p2):
             if self.total_power_dpt(p) <= 0:
                 raise CameraError(f"total power 1/f0 + P_e must be positive, got {self.total_power_dpt(p)} dpt")
+        turn = self.turning_inverse_depth
+        if turn is not None and 1.0 / far <= turn <= 1.0 / near:
+            raise CameraError(
+                f"the working range {near:g}-{far:g} m straddles {1.0 / turn if turn > 0 else math.inf:g} m, where "
+                "sigma1^2 - sigma2^2 turns: depths either side give the same blur pair (for an aperture pair, "
+                "focus outside the range)")
+
+    @staticmethod
+    def _per_frame(key: str, pair: Any, scalar_key: str, scalar: float) -> tuple[float, float] | None:
+        if pair is None:
+            return None
+        try:
+            a, b = pair
+        except (TypeError, ValueError) as exc:
+            raise CameraError(f"camera {key} must be a pair [frame 1, frame 2], got {pair!r}") from exc
+        a, b = _positive(f"{key}[0]", a), _positive(f"{key}[1]", b)
+        if not math.isclose(a, scalar, rel_tol=1e-9):
+            raise CameraError(f"camera {key}[0] = {a!r} must equal {scalar_key} = {scalar!r} (frame 1's value)")
+        return None if a == b else (scalar, b)
 
     # ------------------------------------------------------------------ presets
     @classmethod
@@ -161,15 +201,73 @@ class Camera:
         return 0.5 * self.aperture_m * self.sensor_distance_m
 
     @property
+    def frame_sensor_distances_m(self) -> tuple[float, float]:
+        """``(d_s1, d_s2)`` in metres (both ``sensor_distance_m`` unless they vary)."""
+        return self.sensor_distances_m or (self.sensor_distance_m, self.sensor_distance_m)
+
+    @property
+    def frame_apertures_m(self) -> tuple[float, float]:
+        """``(A1, A2)`` in metres (both ``aperture_m`` unless they vary)."""
+        return self.apertures_m or (self.aperture_m, self.aperture_m)
+
+    @property
+    def varying(self) -> tuple[str, ...]:
+        """Which parameters differ between the frames: a subset of
+        ``("lens_power", "sensor_distance", "aperture")``."""
+        out = ("lens_power",) if self.lens_powers_dpt[0] != self.lens_powers_dpt[1] else ()
+        return out + (("sensor_distance",) if self.sensor_distances_m else ()) + (("aperture",) if self.apertures_m else ())
+
+    @property
+    def image_scale_ratio(self) -> float:
+        """Image scale of frame 2 relative to frame 1, ``d_s2 / d_s1`` (chief rays through
+        the lens centre); 1 unless the sensor distance varies."""
+        d1, d2 = self.frame_sensor_distances_m
+        return d2 / d1
+
+    def sigma_lines_px(self, mu: float | None = None) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Each frame's blur parameter as a line in inverse depth ``q = 1/d_o``:
+        ``sigma_i = alpha_i - a_i q`` (pixels), from eq. 4 with per-frame ``F_i, d_s,i, A_i``:
+        ``a_i = mu A_i d_s,i / 2`` and ``alpha_i = a_i (1/F_i - 1/d_s,i)``.
+
+        Returns:
+            ``((alpha_1, a_1), (alpha_2, a_2))``.
+        """
+        mu = self.mu_px_per_m if mu is None else float(mu)
+        out = []
+        for p, ds, a in zip(self.lens_powers_dpt, self.frame_sensor_distances_m, self.frame_apertures_m):
+            slope = 0.5 * mu * a * ds
+            out.append((slope * (self.total_power_dpt(p) - 1.0 / ds), slope))
+        return tuple(out)  # type: ignore[return-value]
+
+    @property
+    def turning_inverse_depth(self) -> float | None:
+        """Inverse depth (1/m) where ``sigma1^2 - sigma2^2`` has its extremum (a quadratic in
+        ``1/d_o`` when the frames' blur slopes differ); ``None`` when it is linear (one
+        sensor distance and one aperture: the ECVFL pair of eq. 6)."""
+        (al1, a1), (al2, a2) = self.sigma_lines_px(1.0)
+        quad = a1 * a1 - a2 * a2
+        if self.sensor_distances_m is None and self.apertures_m is None or quad == 0.0:
+            return None
+        return (al1 * a1 - al2 * a2) / quad
+
+    @property
     def sigma_difference_px(self) -> float:
-        """``sigma1 - sigma2 = mu A d_s / 2 (1/F1 - 1/F2)`` in pixels (paper eq. 6)."""
+        """``sigma1 - sigma2 = mu A d_s / 2 (1/F1 - 1/F2)`` in pixels (paper eq. 6).
+
+        Raises:
+            CameraError: the sensor distance or the aperture varies, so the difference
+                depends on depth (use :meth:`sigma_lines_px`).
+        """
+        if self.sensor_distances_m is not None or self.apertures_m is not None:
+            raise CameraError("sigma1 - sigma2 depends on depth when the sensor distance or aperture varies")
         p1, p2 = self.lens_powers_dpt
         return self.mu_px_per_m * self.blur_scale_m_dpt * (p1 - p2)
 
     # ------------------------------------------------------------ serialisation
     def to_dict(self) -> dict[str, Any]:
-        """The ``tdfd.camera`` JSON object of the ONNX contract (SI units)."""
-        return {
+        """The ``tdfd.camera`` JSON object of the ONNX contract (SI units), plus
+        ``sensor_distances_m`` / ``apertures_m`` only when they vary."""
+        out: dict[str, Any] = {
             "aperture_m": self.aperture_m,
             "sensor_distance_m": self.sensor_distance_m,
             "focal_lengths_m": list(self.focal_lengths_m),
@@ -179,6 +277,11 @@ class Camera:
             "fixed_focal_length_m": self.fixed_focal_length_m,
             "lens_powers_dpt": list(self.lens_powers_dpt),
         }
+        if self.sensor_distances_m is not None:
+            out["sensor_distances_m"] = list(self.sensor_distances_m)
+        if self.apertures_m is not None:
+            out["apertures_m"] = list(self.apertures_m)
+        return out
 
     def to_json(self) -> str:
         """:meth:`to_dict` as a JSON string."""
@@ -188,15 +291,24 @@ class Camera:
     def from_dict(cls, data: dict[str, Any], **extra: Any) -> "Camera":
         """Rebuild a camera from :meth:`to_dict` output (``focal_lengths_m`` is checked).
 
+        ``sensor_distances_m`` / ``apertures_m`` (optional, per frame) may stand in for a
+        missing ``sensor_distance_m`` / ``aperture_m`` (frame 1's value is taken).
+
         Raises:
             CameraError: on missing keys or focal lengths inconsistent with the powers.
         """
+        data = dict(data)
+        for scalar, pair in (("sensor_distance_m", "sensor_distances_m"), ("aperture_m", "apertures_m")):
+            if scalar not in data and isinstance(data.get(pair), list) and data[pair]:
+                data[scalar] = data[pair][0]
         keys = ("aperture_m", "sensor_distance_m", "fixed_focal_length_m", "lens_powers_dpt",
                 "pixel_pitch_m", "depth_range_m", "mu_px_per_m")
         missing = [k for k in keys if k not in data]
         if missing:
             raise CameraError(f"camera description lacks {missing}")
-        cam = cls(**{k: (tuple(data[k]) if isinstance(data[k], list) else data[k]) for k in keys}, **extra)
+        optional = {k: tuple(data[k]) if isinstance(data[k], list) else data[k]
+                    for k in ("sensor_distances_m", "apertures_m") if data.get(k) is not None}
+        cam = cls(**{k: (tuple(data[k]) if isinstance(data[k], list) else data[k]) for k in keys}, **optional, **extra)
         if "focal_lengths_m" in data:
             got = [float(f) for f in data["focal_lengths_m"]]
             if len(got) != 2 or any(not math.isclose(a, b, rel_tol=1e-6) for a, b in zip(got, cam.focal_lengths_m)):

@@ -3,6 +3,15 @@
 A camera file holds the ``tdfd.camera`` object of CONTRACT.md section 2 (SI units), read by
 :meth:`tdfd.camera.Camera.from_dict`, and may add:
 
+* ``sensor_distances_m`` ([m, m]): per-frame sensor distances ``[d_s1, d_s2]`` for a camera
+  whose sensor moves between the two frames (paper, remark after eq. 13); ``d_s1`` equals
+  ``sensor_distance_m`` (which may then be left out). Frame 2's image is ``d_s2/d_s1`` times
+  frame 1's; :func:`tdfd.dfd.register_sensor_pair` rescales it before the estimator.
+* ``apertures_m`` ([m, m]): per-frame aperture diameters ``[A1, A2]`` (Pentland's aperture
+  DFD); ``A1`` equals ``aperture_m``. Either key may come with equal or with different
+  ``lens_powers_dpt``; a key whose two values are equal means no variation. Read and
+  written by :class:`~tdfd.camera.Camera` itself (``to_dict``/``from_dict``).
+
 * ``magnification_per_dpt`` (1/dpt): focus breathing. The image scale at ECVFL power ``P``
   is ``1 + m P`` (relative), so two frames at ``P1`` and ``P2`` differ in magnification by
   about ``m (P1 - P2)``; positive when the image grows with power. Written by
@@ -24,16 +33,20 @@ Example:
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .camera import Camera
+from .camera import PRESETS, Camera
 from .errors import CameraError
 
-__all__ = ["CameraFile", "load_camera_file", "EXTRA_KEYS"]
+logger = logging.getLogger(__name__)
+_WARNED: set = set()  # camera files already warned about (resolve_camera), once per process
+
+__all__ = ["CameraFile", "load_camera_file", "resolve_camera", "EXTRA_KEYS"]
 
 #: keys a camera file may add to the ``tdfd.camera`` object.
 EXTRA_KEYS = ("magnification_per_dpt", "ecvfl_offset_dpt", "calibration")
@@ -97,7 +110,7 @@ class CameraFile:
         if abs(m) >= 0.1:
             raise CameraError(f"{source}: magnification_per_dpt {m} is implausible (|m| < 0.1 per dioptre expected)")
         cal = data.get("calibration")
-        known = set(EXTRA_KEYS) | set(cam.to_dict()) | {"name"}
+        known = set(EXTRA_KEYS) | set(cam.to_dict()) | {"name", "sensor_distances_m", "apertures_m"}
         return cls(camera=cam, magnification_per_dpt=m, ecvfl_offset_dpt=_number(data, "ecvfl_offset_dpt", source),
                    calibration=cal if isinstance(cal, dict) else None,
                    extra={k: v for k, v in data.items() if k not in known})
@@ -119,3 +132,36 @@ def load_camera_file(path: str | os.PathLike) -> CameraFile:
     except json.JSONDecodeError as exc:
         raise CameraError(f"{p}: invalid JSON: {exc}") from exc
     return CameraFile.from_dict(data, str(p))
+
+
+def resolve_camera(spec: str | os.PathLike) -> Camera:
+    """A camera from a preset name (``reference``, ``paper``) or a camera JSON file.
+
+    What ``python -m training --set model.camera=...`` and ``python -m export --camera ...``
+    accept. A name that is a preset is the preset; anything else is read as a file
+    (:func:`load_camera_file`). Keys the model does not use yet are logged:
+    ``magnification_per_dpt`` (the model does not register breathing) and
+    ``ecvfl_offset_dpt`` (a simulated true camera's offset, not a calibrated camera).
+
+    Raises:
+        CameraError: neither a preset nor a readable, valid camera file (the message names
+            the file, or lists the presets).
+    """
+    text = os.fspath(spec)
+    if text in PRESETS:
+        return Camera.preset(text)
+    path = Path(text)
+    if path.suffix.lower() != ".json" and not path.exists():
+        raise CameraError(f"camera {text!r} is neither a preset ({sorted(PRESETS)}) nor a camera JSON file")
+    cf = load_camera_file(path)
+    key = (str(path.resolve()), cf.magnification_per_dpt, cf.ecvfl_offset_dpt)
+    if key in _WARNED:
+        return cf.camera
+    _WARNED.add(key)
+    if cf.magnification_per_dpt:
+        logger.warning("%s: magnification_per_dpt %g is not used by the model (no breathing registration in it)",
+                       path, cf.magnification_per_dpt)
+    if cf.ecvfl_offset_dpt:
+        logger.warning("%s: ecvfl_offset_dpt %g is ignored: it describes a simulated true camera, not a calibrated one",
+                       path, cf.ecvfl_offset_dpt)
+    return cf.camera

@@ -20,6 +20,7 @@ __all__ = [
     "GRID_KEY",
     "VERSION_KEY",
     "MODEL_KEY",
+    "COVERAGE_KEY",
     "METADATA_KEYS",
     "MIN_OPSET",
     "DEFAULT_MODEL_ENV",
@@ -39,6 +40,9 @@ GRID_KEY = "tdfd.grid"
 VERSION_KEY = "tdfd.version"
 #: Optional, informational ``metadata_props`` key: the model's full description.
 MODEL_KEY = "tdfd.model"
+#: Optional ``metadata_props`` key beyond the contract's three: which cameras the model covers
+#: (:mod:`tdfd.coverage`; checked when ``DepthRuntime`` is given a camera).
+COVERAGE_KEY = "tdfd.coverage"
 #: The keys every exported file must carry, each value a JSON string.
 METADATA_KEYS: tuple[str, str, str] = (CAMERA_KEY, GRID_KEY, VERSION_KEY)
 #: Lowest ONNX opset the contract allows.

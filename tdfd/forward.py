@@ -47,7 +47,7 @@ from torch import nn
 from .camera import Camera
 from .errors import InputError, ShapeError
 from .optics.psf import PSFShape
-from .optics.render import KernelFn, defocus_layered_multi, sigma_map
+from .optics.render import KernelFn, defocus_layered_multi, frame_sigma_map, sigma_map
 from .sensor import Param, SensorModel
 from .warp import Misregistration, misregister
 
@@ -92,14 +92,21 @@ def defocus_pair(camera: Camera, radiance: torch.Tensor, depth_m: torch.Tensor,
     if mode not in DEFOCUS_MODES:
         raise InputError(f"mode must be one of {DEFOCUS_MODES}, got {mode!r}")
     b = radiance.shape[0]
+    kw: dict[str, Any] = {"kernel_fn": psf} if callable(psf) else {"shape": psf}
+    multi = dict(layer_spacing=layer_spacing, exact_planes=True, occlusion=(mode != "gather"), **kw)
+    if camera.sensor_distances_m is not None or camera.apertures_m is not None:
+        # two sensor distances or apertures: the blur maps differ by a depth-dependent amount,
+        # so each frame gets its own layer decomposition (eq. 4 per frame; frame 1's pixel grid,
+        # no d_s2/d_s1 scale: see tdfd.optics.render.render_pair)
+        frames = [defocus_layered_multi(radiance, frame_sigma_map(camera, depth_m, i, mu), None, **multi)[:, 0, 0]
+                  for i in (0, 1)]
+        return torch.stack(frames, dim=1)
     p1, p2 = camera.lens_powers_dpt
     s1 = sigma_map(camera, depth_m, p1, mu)
     # frame 2's blur map differs by the constant of paper eq. 6
     diff = camera.sigma_difference_px if mu is None else float(mu) * camera.blur_scale_m_dpt * (p1 - p2)
     offsets = torch.tensor([[0.0, diff * -1.0]], dtype=s1.dtype).expand(b, 2)
-    kw: dict[str, Any] = {"kernel_fn": psf} if callable(psf) else {"shape": psf}
-    out = defocus_layered_multi(radiance, s1, offsets, layer_spacing=layer_spacing, exact_planes=True,
-                                occlusion=(mode != "gather"), **kw)
+    out = defocus_layered_multi(radiance, s1, offsets, **multi)
     return out[:, :, 0]
 
 

@@ -2,7 +2,10 @@ r"""Depth from defocus on the device: an ONNX Runtime session around the exporte
 
 Needs only numpy and onnxruntime (no torch): a device ships this module, ``tdfd/camera.py``,
 ``tdfd/errors.py`` and one ``.onnx`` file (``CONTRACT.md`` section 2). The camera and the
-tile grid are read from the file's metadata.
+tile grid are read from the file's metadata. ``DepthRuntime(..., camera=CAM)`` names the
+user's own camera (a :class:`~tdfd.camera.Camera`, a preset name or a camera JSON file):
+it is checked at load time against the model's ``tdfd.coverage`` metadata
+(:mod:`tdfd.coverage`) and a camera the model does not serve is refused.
 
 Inputs are validated before they reach the session, with typed errors
 (:mod:`tdfd.errors`): ``float16/32/64`` arrays must hold linear intensity in ``[0, 1]``;
@@ -38,8 +41,10 @@ from typing import Any, Sequence
 import numpy as np
 
 from .camera import Camera, in_focus_power_dpt
-from .contract import (CAMERA_KEY, DEFAULT_MODEL_ENV, DEFAULT_MODEL_RELPATH, GRID_KEY, INPUT_NAMES, METADATA_KEYS,
+from .contract import (CAMERA_KEY, COVERAGE_KEY, DEFAULT_MODEL_ENV, DEFAULT_MODEL_RELPATH, GRID_KEY, INPUT_NAMES, METADATA_KEYS,
                        OUTPUT_NAMES, PACKAGED_MODEL_RELPATH, VERSION_KEY)
+from .camera_file import resolve_camera
+from .coverage import check_coverage
 from .errors import DTypeError, InputError, ModelError, ShapeError
 from .frames import raw_to_linear
 from .pair_check import pair_problem
@@ -323,20 +328,28 @@ class DepthRuntime:
         providers: ONNX Runtime execution providers (default CPU).
         optimization: ONNX Runtime graph optimisation level: ``"all"``, ``"extended"``
             (default), ``"basic"`` or ``"disable"``.
+        camera: the user's camera (a :class:`tdfd.Camera`, a preset name or a camera JSON
+            file), checked against the model's ``tdfd.coverage``; ``None``: the model's own.
 
     Raises:
         ModelError: a missing, unreadable or non-conforming file (wrong inputs/outputs,
-            missing or invalid ``tdfd.*`` metadata).
+            missing or invalid ``tdfd.*`` metadata), or a ``camera`` the model does not
+            cover (or a model that states no coverage).
+        CameraError: a ``camera`` file that is missing or invalid (naming it).
 
     Attributes:
-        camera: :class:`tdfd.Camera` rebuilt from the ``tdfd.camera`` metadata.
+        camera: the user's ``camera`` when given (it blurs like the model's, so the model's
+            depths are its depths; in-focus powers use its own lenses), else
+            :attr:`model_camera`.
+        model_camera: :class:`tdfd.Camera` rebuilt from the ``tdfd.camera`` metadata.
         tile, stride: the tile grid (``tdfd.grid``).
         version: the tdfd version that exported the file.
         metadata: all ``metadata_props``, JSON-decoded where possible.
     """
 
     def __init__(self, model_path: str | os.PathLike | None = None, threads: int = 2,
-                 providers: Sequence[str] | None = None, optimization: str = DEFAULT_OPTIMIZATION) -> None:
+                 providers: Sequence[str] | None = None, optimization: str = DEFAULT_OPTIMIZATION,
+                 camera: Camera | str | os.PathLike | None = None) -> None:
         path = default_model_path() if model_path is None else Path(model_path)
         self.path = path
         self.threads = int(threads)
@@ -368,6 +381,21 @@ class DepthRuntime:
         if self.tile < 1 or not 1 <= self.stride <= self.tile:
             raise ModelError(f"{path}: invalid tile grid tile={self.tile}, stride={self.stride}")
         self.version = str(self.metadata[VERSION_KEY])
+        self.model_camera = self.camera
+        if camera is not None:
+            self.camera = self._covered_camera(camera)
+
+    def _covered_camera(self, camera: Camera | str | os.PathLike) -> Camera:
+        """The user's camera after the load-time coverage check (:mod:`tdfd.coverage`)."""
+        label = None
+        if not isinstance(camera, Camera):
+            label = os.fspath(camera)
+            camera = resolve_camera(label)
+        if COVERAGE_KEY not in self.metadata:
+            raise ModelError(f"{self.path} states no {COVERAGE_KEY!r} (which cameras it covers), so it cannot be "
+                             f"checked for camera {camera.name!r}; re-export it with `python -m export`")
+        check_coverage(self.model_camera, self.metadata[COVERAGE_KEY], camera, str(self.path), label)
+        return camera
 
     def __repr__(self) -> str:
         return f"DepthRuntime({str(self.path)!r}, tile={self.tile}, stride={self.stride}, threads={self.threads})"

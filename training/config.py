@@ -20,7 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
 
-from tdfd.errors import InputError
+from tdfd.camera_file import resolve_camera
+from tdfd.errors import CameraError, InputError
 
 __all__ = ["TEXTURED_FAMILIES", "ConfigError", "DataConfig", "ModelConfig", "OptimConfig", "EvalConfig", "TrainConfig",
            "load_config", "apply_overrides", "config_to_dict", "config_from_dict"]
@@ -69,7 +70,12 @@ class DataConfig:
 
 @dataclass
 class ModelConfig:
-    """The combined model (see :class:`tdfd.model.DFDModel`)."""
+    """The combined model (see :class:`tdfd.model.DFDModel`).
+
+    ``camera``: a preset name (``reference``, ``paper``) or the path of a camera JSON file
+    (the ``tdfd.camera`` object, :mod:`tdfd.camera_file`), e.g.
+    ``python -m training --set model.camera=mycam.json``.
+    """
 
     camera: str = "reference"
     tile: int = 64
@@ -372,6 +378,11 @@ def validate_config(cfg: TrainConfig) -> None:
         if not ok:
             raise ConfigError(msg)
     from tdfd.model import context_sizes  # the model's own rule for its sides
+
+    try:
+        resolve_camera(cfg.model.camera)
+    except CameraError as exc:
+        raise ConfigError(f"model.camera: {exc}") from exc
 
     try:
         context_sizes(cfg.model.context)

@@ -19,7 +19,7 @@ from typing import Any, Callable
 
 import torch
 
-from tdfd import Camera
+from tdfd.camera_file import resolve_camera
 from tdfd.model import DFDModel
 
 from .config import ConfigError, DataConfig, ModelConfig
@@ -44,7 +44,7 @@ def import_object(spec: str) -> Any:
 
 def build_model(mcfg: ModelConfig) -> DFDModel:
     """A fresh :class:`~tdfd.model.DFDModel` from the model section."""
-    camera = Camera.preset(mcfg.camera)
+    camera = resolve_camera(mcfg.camera)
     return DFDModel(camera, tile=mcfg.tile, stride=mcfg.stride, confidence_scale=mcfg.confidence_scale,
                     correction_scale=mcfg.correction_scale, hidden=mcfg.hidden, blocks=mcfg.blocks,
                     kernel_size=mcfg.kernel_size, dilation_base=mcfg.dilation_base, context=mcfg.context)
@@ -65,7 +65,7 @@ def make_dataset(dcfg: DataConfig, mcfg: ModelConfig, seed: int, height: int | N
     except (TypeError, ValueError):
         params = {}
     var_kw = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
-    offer: dict[str, Any] = {"seed": seed, "camera": Camera.preset(mcfg.camera), "tile": mcfg.tile,
+    offer: dict[str, Any] = {"seed": seed, "camera": resolve_camera(mcfg.camera), "tile": mcfg.tile,
                              "stride": mcfg.stride}
     if "size" in params:
         offer["size"] = (h, w)

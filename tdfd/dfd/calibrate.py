@@ -29,17 +29,16 @@ import torch
 
 from ..camera import Camera
 from ..errors import InputError
-from ..optics.thin_lens import blur_radius_from_power
+from ..optics.thin_lens import camera_sigmas
 from .fourier_ratio import FourierRatioDFD
 
 __all__ = ["radius_square_difference", "mu_from_square_difference", "calibrate_mu"]
 
 
 def radius_square_difference(camera: Camera, depth_m: float) -> float:
-    """``r_1^2 - r_2^2`` in m^2 for an object at ``depth_m`` (eq. 3 at both powers)."""
-    p1, p2 = camera.lens_powers_dpt
-    r1 = float(blur_radius_from_power(camera, float(depth_m), p1))
-    r2 = float(blur_radius_from_power(camera, float(depth_m), p2))
+    """``r_1^2 - r_2^2`` in m^2 for an object at ``depth_m`` (eq. 3 for both frames, each
+    with its own power, sensor distance and aperture)."""
+    r1, r2 = (float(s) for s in camera_sigmas(camera, float(depth_m), 1.0))
     return r1 * r1 - r2 * r2
 
 

@@ -1,6 +1,7 @@
 r"""The analytic Fourier-ratio depth-from-defocus estimator (paper sec. 3, Fig. 6).
 
-For two images of the same scene at focal lengths ``F1, F2`` with Gaussian PSFs, the
+For two images of the same scene at focal lengths ``F1, F2`` (or two sensor distances or
+apertures: :mod:`tdfd.optics.thin_lens`) with Gaussian PSFs, the
 power spectra of a tile obey (eqs. 10-12, written for power ``|G|^2``):
 
 .. math:: y(\omega) = \log\frac{|G_1|^2}{|G_2|^2} = -(\sigma_1^2 - \sigma_2^2)\,\omega^2 .
@@ -19,7 +20,9 @@ Two estimators of ``D = sigma1^2 - sigma2^2`` per tile:
   not bias ``D``.
 
 Then eq. 6 fixes ``c = sigma1 - sigma2``, so ``sigma1 + sigma2 = D / c`` gives both signed
-sigmas, and eq. 5 the depth (computed as inverse depth, finite everywhere). The confidence
+sigmas, and eq. 5 the depth (a camera whose sensor distance or aperture varies solves eq. 4's
+quadratic instead, :func:`tdfd.optics.thin_lens.depth_from_square_difference`; its frame 2
+must be registered to frame 1's scale first, :func:`tdfd.dfd.register_sensor_pair`) (computed as inverse depth, finite everywhere). The confidence
 in [0, 1] comes from the fit's own error propagated to a relative depth error,
 ``conf = 1 / (1 + (rel_err / rel_err_scale)^2)``, times the fraction of usable rings and a
 factor that vanishes outside the extended working range; a texture-less tile gets a
@@ -50,7 +53,7 @@ from torch import nn
 from ..camera import Camera
 from ..errors import DTypeError, InputError, NonFiniteError, RangeError, ShapeError
 from ..grid import check_grid, grid_shape
-from ..optics.thin_lens import depth_from_square_difference
+from ..optics.thin_lens import depth_from_square_difference, square_difference_slope
 from .spectra import TileSpectra, periodic_hann
 
 __all__ = ["validate_pair", "DFDResult", "FourierRatioDFD", "fourier_ratio_dfd", "whole_image_dfd", "noise_variance_per_tile"]
@@ -232,8 +235,6 @@ class FourierRatioDFD(nn.Module):
         # per-bin -1/omega^2 over region R, for eq. 13
         in_band = member.sum(0)
         self.register_buffer("eq13_weight", (in_band / omega2.clamp_min(1e-12) / in_band.sum())[None, :, None, None], persistent=False)
-        p1, p2 = camera.lens_powers_dpt
-        self.sigma_difference = self.mu * camera.blur_scale_m_dpt * (p1 - p2)
         near, far = camera.depth_range_m
         self.inv_depth_limits = (1.0 / (2.0 * far), 2.0 / near)
 
@@ -310,10 +311,13 @@ class FourierRatioDFD(nn.Module):
         chi2 = (w * resid * resid).sum(1, keepdim=True) / dof
         var_d = chi2.clamp_min(1.0) / (sw4 + eps)
         inv_depth, sig1, sig2 = depth_from_square_difference(self.camera, dsq, self.mu)
-        # error propagation: dD/d(1/d_o) = -2 mu (A d_s / 2) (sigma1 - sigma2)
-        slope = 2.0 * self.mu * self.camera.blur_scale_m_dpt * abs(self.sigma_difference)
         q_lo, q_hi = self.inv_depth_limits
         q = inv_depth.clamp(q_lo, q_hi)
+        # error propagation: |dD/d(1/d_o)| (-2 mu (A d_s / 2) (sigma1 - sigma2) for the ECVFL pair)
+        if self.camera.turning_inverse_depth is None:  # ECVFL pair: a constant (the shipped graph)
+            slope = float(square_difference_slope(self.camera, 1.0, self.mu))
+        else:
+            slope = square_difference_slope(self.camera, q, self.mu).clamp_min(eps)
         rel = torch.sqrt(var_d) / slope / q
         in_range = torch.sigmoid((inv_depth - q_lo) / (0.05 * q_lo)) * torch.sigmoid((q_hi - inv_depth) / (0.05 * q_lo))
         usable = (gate.sum(1, keepdim=True) / 3.0).clamp(max=1.0)

@@ -58,6 +58,7 @@ __all__ = [
     "defocus_layered",
     "defocus_layered_multi",
     "sigma_map",
+    "frame_sigma_map",
     "render_at_power",
     "render_pair",
 ]
@@ -151,6 +152,20 @@ def sigma_map(camera: Camera, depth_m: torch.Tensor, ecvfl_power_dpt: float | to
     if p.ndim == 1 and depth_m.ndim == 4:
         p = p[:, None, None, None]
     return mu * blur_radius_from_power(camera, depth_m, p)
+
+
+def frame_sigma_map(camera: Camera, depth_m: torch.Tensor, frame: int, mu: float | torch.Tensor | None = None
+                    ) -> torch.Tensor:
+    """Signed blur parameter in pixels of DFD frame ``frame`` (0: ``image_f1``, 1: ``image_f2``)
+    for every depth: eq. 4 with that frame's ECVFL power, sensor distance and aperture
+    (:meth:`tdfd.camera.Camera.sigma_lines_px`). ``mu`` defaults to ``camera.mu_px_per_m``."""
+    if frame not in (0, 1):
+        raise InputError(f"frame must be 0 or 1, got {frame!r}")
+    if camera.sensor_distances_m is None and camera.apertures_m is None:
+        return sigma_map(camera, depth_m, camera.lens_powers_dpt[frame], mu)
+    mu = camera.mu_px_per_m if mu is None else mu
+    f, ds, a = camera.focal_lengths_m[frame], camera.frame_sensor_distances_m[frame], camera.frame_apertures_m[frame]
+    return mu * 0.5 * a * ds * (1.0 / f - 1.0 / depth_m - 1.0 / ds)
 
 
 def _default_kernel_fn(shape: PSFShape) -> KernelFn:
@@ -417,7 +432,11 @@ def render_at_power(camera: Camera, sharp: torch.Tensor, depth_m: torch.Tensor,
         raise ShapeError(f"depth_m must have shape (B, 1, H, W) matching sharp {tuple(sharp.shape)}, got {tuple(depth_m.shape)}")
     if not torch.isfinite(depth_m).all() or bool((depth_m <= 0).any()):
         raise InputError("depth_m must be finite and > 0 everywhere")
-    s = sigma_map(camera, depth_m, ecvfl_power_dpt, mu)
+    return _render_sigma(sharp, sigma_map(camera, depth_m, ecvfl_power_dpt, mu), shape, layer_spacing)
+
+
+def _render_sigma(sharp: torch.Tensor, s: torch.Tensor, shape: PSFShape, layer_spacing: float) -> torch.Tensor:
+    """Defocus by a blur map: exact uniform path for samples of one ``sigma``, else layered."""
     flat = s.reshape(s.shape[0], -1)
     if bool((flat.detach().amax(1) == flat.detach().amin(1)).all()):
         return defocus_uniform(sharp, flat[:, 0], shape)
@@ -428,6 +447,12 @@ def render_pair(camera: Camera, sharp: torch.Tensor, depth_m: torch.Tensor, shap
                 mu: float | torch.Tensor | None = None, layer_spacing: float = 0.25) -> tuple[torch.Tensor, torch.Tensor]:
     """The DFD pair ``(image_f1, image_f2)`` at the camera's two ECVFL powers (noise-free).
 
+    Each frame blurs by eq. 4 with its own power, sensor distance and aperture
+    (:func:`frame_sigma_map`). Both frames are rendered on frame 1's pixel grid: a camera
+    whose sensor distance varies also scales frame 2 by ``d_s2/d_s1``, which this renderer
+    does **not** apply (the pair comes out registered; :func:`tdfd.breathing.magnify` adds
+    the scale, :func:`tdfd.dfd.register_sensor_pair` removes it from real captures).
+
     Both frames share one layer decomposition (their blur maps differ by a constant,
     paper eq. 6), rendered in one pass by :func:`defocus_layered_multi`: ``image_f1`` equals
     :func:`render_at_power` at the first power; ``image_f2`` differs from it at the second
@@ -435,20 +460,18 @@ def render_pair(camera: Camera, sharp: torch.Tensor, depth_m: torch.Tensor, shap
     same interpolation error in both frames). Constant-depth samples take the exact uniform
     path for both frames.
     """
-    p1, p2 = camera.lens_powers_dpt
     _check_image(sharp, "sharp")
     _check_image(depth_m, "depth_m")
     if depth_m.shape[0] != sharp.shape[0] or depth_m.shape[1] != 1 or depth_m.shape[-2:] != sharp.shape[-2:]:
         raise ShapeError(f"depth_m must have shape (B, 1, H, W) matching sharp {tuple(sharp.shape)}, got {tuple(depth_m.shape)}")
     if not torch.isfinite(depth_m).all() or bool((depth_m <= 0).any()):
         raise InputError("depth_m must be finite and > 0 everywhere")
-    s1, s2 = sigma_map(camera, depth_m, p1, mu), sigma_map(camera, depth_m, p2, mu)
+    s1, s2 = frame_sigma_map(camera, depth_m, 0, mu), frame_sigma_map(camera, depth_m, 1, mu)
     flat = s1.reshape(s1.shape[0], -1).detach()
     diff = (s2 - s1).reshape(s1.shape[0], -1)
     tol = 1e-4 * (1.0 + float(flat.abs().max()))
     if bool((flat.amax(1) == flat.amin(1)).all()) or float((diff.detach().amax(1) - diff.detach().amin(1)).max()) > tol:
-        return (render_at_power(camera, sharp, depth_m, p1, shape, mu, layer_spacing),
-                render_at_power(camera, sharp, depth_m, p2, shape, mu, layer_spacing))
+        return _render_sigma(sharp, s1, shape, layer_spacing), _render_sigma(sharp, s2, shape, layer_spacing)
     offsets = torch.stack([torch.zeros_like(diff[:, 0]), diff[:, 0]], dim=1)  # constant within `tol`
     out = defocus_layered_multi(sharp, s1, offsets, shape, layer_spacing)
     return out[:, 0], out[:, 1]

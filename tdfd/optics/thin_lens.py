@@ -11,6 +11,15 @@ sensor) and negative when it is nearer. The blur parameter is ``sigma = mu * r_b
 (eq. 4), signed too; a Gaussian PSF depends only on ``sigma**2``. Distances are metres,
 powers dioptres, ``sigma`` pixels when ``mu`` is in px/m.
 
+Any varying parameter (paper, remark after eq. 13): frame ``i`` of a camera blurs by eq. 4
+with the subscript where the parameter varies,
+``sigma_i = mu (A_i/2) d_s,i (1/F_i - 1/d_o - 1/d_s,i)``, a line in inverse depth
+``q = 1/d_o``: ``sigma_i = alpha_i - a_i q`` (:meth:`tdfd.camera.Camera.sigma_lines_px`).
+Then ``D = sigma1^2 - sigma2^2 = (a1^2 - a2^2) q^2 - 2 (alpha1 a1 - alpha2 a2) q +
+alpha1^2 - alpha2^2``: linear in ``q`` for the ECVFL pair (``a1 = a2``, eq. 6), a quadratic
+for two sensor distances or two apertures, solved on the working range's side of its
+turning point (:func:`depth_from_square_difference`).
+
 All functions take Python floats or tensors (broadcast together) and are differentiable.
 
 Example:
@@ -26,6 +35,7 @@ Example:
 
 from __future__ import annotations
 
+import math
 from typing import Union
 
 import torch
@@ -43,6 +53,7 @@ __all__ = [
     "camera_sigmas",
     "camera_blur_radii_px",
     "depth_from_square_difference",
+    "square_difference_slope",
     "sensor_varying_sigmas",
     "depth_from_square_difference_sensor_varying",
 ]
@@ -126,13 +137,17 @@ def sigmas_from_square_difference(square_difference: Number, difference: Number)
 
 
 def camera_sigmas(camera: Camera, depth_m: Number, mu: Number | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Signed ``(sigma1, sigma2)`` in pixels for an object at ``depth_m`` (eq. 4, both settings).
+    """Signed ``(sigma1, sigma2)`` in pixels for an object at ``depth_m`` (eq. 4, both frames,
+    each with its own ``F_i``, ``d_s,i`` and ``A_i``).
 
     ``mu`` defaults to ``camera.mu_px_per_m``.
     """
     mu = camera.mu_px_per_m if mu is None else mu
-    p1, p2 = camera.lens_powers_dpt
-    return mu * blur_radius_from_power(camera, depth_m, p1), mu * blur_radius_from_power(camera, depth_m, p2)
+    if camera.sensor_distances_m is None and camera.apertures_m is None:
+        p1, p2 = camera.lens_powers_dpt
+        return mu * blur_radius_from_power(camera, depth_m, p1), mu * blur_radius_from_power(camera, depth_m, p2)
+    frames = zip(camera.focal_lengths_m, camera.frame_sensor_distances_m, camera.frame_apertures_m)
+    return tuple(sigma_from_depth(depth_m, f, ds, a, mu) for f, ds, a in frames)  # type: ignore[return-value]
 
 
 def camera_blur_radii_px(camera: Camera, depth_m: Number, ecvfl_power_dpt: Number) -> torch.Tensor:
@@ -144,19 +159,65 @@ def depth_from_square_difference(camera: Camera, square_difference: Number, mu: 
                                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Inverse depth, ``sigma1`` and ``sigma2`` from a measured ``sigma1^2 - sigma2^2``.
 
-    Uses eqs. 6 + 13 for the sigmas and eq. 5 for the depth, written in inverse depth
-    ``1/d_o = 1/F1 - 1/d_s - 2 sigma1 / (mu A d_s)`` so that it is finite for every input.
+    ECVFL pair (one sensor distance, one aperture): eqs. 6 + 13 for the sigmas and eq. 5 for
+    the depth, written in inverse depth ``1/d_o = 1/F1 - 1/d_s - 2 sigma1 / (mu A d_s)`` so
+    that it is finite for every input.
+
+    Two sensor distances or apertures: with ``sigma_i = alpha_i - a_i q`` (module
+    docstring), ``D`` is a quadratic ``Qa q^2 + Qb q + Qc`` in ``q = 1/d_o`` whose roots
+    are symmetric about its turning point; the camera guarantees its working range lies on
+    one side of it (:attr:`tdfd.camera.Camera.turning_inverse_depth`) and the root on that
+    side is taken, in the cancellation-free form of the two. A ``D`` beyond the quadratic's
+    extremum (no real root) gives the turning point itself, outside the working range
+    (the estimator's confidence is then ~0).
 
     Returns:
         ``(inverse_depth [1/m], sigma1 [px], sigma2 [px])``; inverse depth may be <= 0 for
         inputs that imply an object beyond infinity.
     """
     mu = camera.mu_px_per_m if mu is None else mu
+    if camera.sensor_distances_m is not None or camera.apertures_m is not None:
+        return _depth_from_square_difference_general(camera, square_difference, mu)
     p1, p2 = camera.lens_powers_dpt
     c = mu * camera.blur_scale_m_dpt * (p1 - p2)
     s1, s2 = sigmas_from_square_difference(square_difference, c)
     inv_depth = (camera.total_power_dpt(p1) - 1.0 / camera.sensor_distance_m) - s1 / (mu * camera.blur_scale_m_dpt)
     return inv_depth, s1, s2
+
+
+def _quadratic(camera: Camera, mu: float) -> tuple[float, float, float, tuple[tuple[float, float], tuple[float, float]]]:
+    (al1, a1), (al2, a2) = lines = camera.sigma_lines_px(float(mu))
+    return a1 * a1 - a2 * a2, -2.0 * (al1 * a1 - al2 * a2), al1 * al1 - al2 * al2, lines
+
+
+def _depth_from_square_difference_general(camera: Camera, square_difference: Number, mu: float
+                                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    qa, qb, qc0, ((al1, a1), (al2, a2)) = _quadratic(camera, mu)
+    d = _t(square_difference)
+    near, far = camera.depth_range_m
+    q_mid = 0.5 * (1.0 / near + 1.0 / far)
+    if qa == 0.0:  # equal blur slopes (A1 d_s1 = A2 d_s2): linear after all
+        q = (d - qc0) / qb
+    else:
+        turn = -qb / (2.0 * qa)
+        s = math.copysign(1.0, qa) * math.copysign(1.0, q_mid - turn)  # root on the range's side
+        disc = (qb * qb - 4.0 * qa * (qc0 - d)).clamp_min(0.0)
+        root = torch.sqrt(disc + 1e-30) if disc.dtype == torch.float64 else torch.sqrt(disc + 1e-12)
+        if qb != 0.0 and s == math.copysign(1.0, qb):  # -qb + s*root would cancel: use 2 Qc / (-qb - s root)
+            q = 2.0 * (qc0 - d) / (-qb - s * root)
+        else:
+            q = (-qb + s * root) / (2.0 * qa)
+    return q, al1 - a1 * q, al2 - a2 * q
+
+
+def square_difference_slope(camera: Camera, inverse_depth: Number, mu: Number | None = None) -> torch.Tensor:
+    """``|dD/dq|``, the sensitivity of ``D = sigma1^2 - sigma2^2`` (px^2) to inverse depth
+    (1/m), for error propagation: ``|2 Qa q + Qb|`` (constant ``2 a |sigma1 - sigma2|`` for
+    the ECVFL pair)."""
+    mu = camera.mu_px_per_m if mu is None else mu
+    qa, qb, _, _ = _quadratic(camera, float(mu))
+    q = _t(inverse_depth)
+    return (2.0 * qa * q + qb).abs()
 
 
 # --------------------------------------------------------------------------------------
