@@ -32,10 +32,14 @@ One single-shot DFD focus (paper sec. 3, "focal length as the varying parameter"
    the model, allows its power (declared when the lens has settled), or a
    ``Capture("verify")`` frame at ``P_e`` confirms it (its relative blur against the DFD
    pair, measured on the ROI without the depth model). A failed verification gives a
-   measured focus error: the lens moves by it and verifies again (``refine_steps``), then
-   a contrast-detect search around ``P_e`` takes over (or, with ``fallback=False``, the
-   run ends ``"unconfirmed"``). :attr:`~tdfd.autofocus.messages.AFResult.evidence` says
-   which evidence declared the focus.
+   measured focus error: when it and the model's estimate agree, their weighted mean
+   (:func:`~tdfd.autofocus.evidence.combine_focus_error`, the three-frame estimate) is
+   known well enough, the lens moves there and focus is declared (evidence
+   ``"refined"``, still 3 frames); otherwise the lens moves by the measured error and
+   verifies again (``refine_steps``), then a contrast-detect search around ``P_e`` takes
+   over (or, with ``fallback=False``, the run ends ``"unconfirmed"``); a search without a
+   peak (``contrast_min_peak``) declares nothing.
+   :attr:`~tdfd.autofocus.messages.AFResult.evidence` says which evidence declared the focus.
 
 When the ROI confidence is too low (a texture-less target) the controller says so
 (log and :attr:`~tdfd.autofocus.messages.AFResult.fallback_reason`) and falls back to the contrast-detect search
@@ -122,6 +126,17 @@ class DFDController(StateMachine):
             (:func:`tdfd.autofocus.evidence.pair_focus_interval`).
         refine_steps: after a failed verification, this many further DFD steps (move by the
             focus error the verification measured, verify again) before the contrast search.
+        combine_gate: after a failed first verification, the model's estimate and the
+            verification frame's are combined (:func:`~tdfd.autofocus.evidence.combine_focus_error`)
+            when they lie within this many combined standard uncertainties (0 disables).
+        refine_z: the combined estimate is declared (after moving the lens to it) when
+            ``refine_z`` of its standard uncertainties are within ``verify_tolerance_px``.
+        refine_max_uncertainty_px: only a model estimate at most this uncertain (px) takes
+            part in the combined estimate (a less certain one would leave the verification
+            frame alone to decide).
+        contrast_min_peak: the contrast fall-back declares its peak only when the sharpest
+            frame of the search is at least this many times the least sharp (else the run
+            ends ``"unconfirmed"``: a texture-less target shows only noise).
         min_confidence: mean ROI confidence below which DFD is not trusted and
             contrast-detect AF takes over (the scale is the estimator's: see
             :func:`tdfd.autofocus.estimators.suggested_min_confidence`).
