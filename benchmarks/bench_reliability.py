@@ -172,13 +172,13 @@ allows the model's in-focus power (2 frames); or a verification frame at that po
 confirms it (the relative blur between that frame and the DFD pair, measured on the ROI
 without the depth model, gives the focus error; it must be below 0.8 px of blur with two
 standard uncertainties; 3 frames); or, when it does not, the model's estimate and the
-verification frame's measured error agree (within 3 combined standard uncertainties, the
+verification frame's measured error agree (within 2 combined standard uncertainties, the
 model's own at most 1 px) and their weighted mean is known to 0.8 px with 2.5 standard
 uncertainties: the lens moves there and focus is declared without a further frame
 ("3-frame estimate", 3 frames). Otherwise the lens moves by the measured error and verifies
 once more; after that a contrast search around the estimate (+-0.6 dpt) decides, and a search
 whose peak rises less than 1.1x above its least sharp frame (sensor noise on a texture-less
-target) declares nothing ("not declared"). Thresholds tuned on bench seeds 10-15, never on the
+target) declares nothing ("not declared"). Thresholds tuned on bench seeds 10-21, never on the
 seeds 0-4 of this benchmark. "Declared out of focus": focus declared with a residual blur
 radius of 1 px or more. "Correct DFD estimate withheld": the first DFD estimate was within
 1 px, but focus was not declared on it at once (a 3-frame estimate moves the lens away from

@@ -415,12 +415,12 @@ def _conf_for(uncertainty_px: float, depth: float = TRUE_DEPTH, b0: float = 0.01
 
 
 def test_failed_verification_declares_on_the_three_frame_estimate():
-    """A wrong first estimate (1.4 px) with its honest uncertainty: the verification frame and the model
+    """A wrong first estimate (1.2 px) with its honest uncertainty: the verification frame and the model
     together put the focus within a pixel, so the lens moves there and focus is declared at 3 frames."""
-    wrong = 1.0 / (1.0 / TRUE_DEPTH + 0.3)
-    assert _blur_px(TRUE_DEPTH, CAM.in_focus_power_dpt(wrong)) > 1.3
-    res = drive(DFDController(CAM), FakePlant(TRUE_DEPTH, scripted=(wrong, _conf_for(0.5, wrong))))
-    assert res.uncertainty_px == pytest.approx(0.5, rel=0.01)
+    wrong = 1.0 / (1.0 / TRUE_DEPTH + 0.25)
+    assert _blur_px(TRUE_DEPTH, CAM.in_focus_power_dpt(wrong)) > 1.1
+    res = drive(DFDController(CAM), FakePlant(TRUE_DEPTH, scripted=(wrong, _conf_for(0.7, wrong))))
+    assert res.uncertainty_px == pytest.approx(0.7, rel=0.01)
     assert res.status == "focused" and res.evidence == "refined" and res.frames == 3
     assert res.verified is False and res.refine_count == 1 and res.lens_commands == 4
     assert _blur_px(TRUE_DEPTH, res.power_dpt) < 0.5
@@ -429,27 +429,28 @@ def test_failed_verification_declares_on_the_three_frame_estimate():
 def test_three_frame_estimate_needs_both_opinions():
     """No declaration on the three-frame estimate when the model's own uncertainty is above
     ``refine_max_uncertainty_px``, or when the model confidently contradicts the verification frame."""
-    wrong = 1.0 / (1.0 / TRUE_DEPTH + 0.3)
-    res = drive(DFDController(CAM, refine_max_uncertainty_px=0.4, fallback=False),
-                FakePlant(TRUE_DEPTH, scripted=(wrong, _conf_for(0.5, wrong))))
+    wrong = 1.0 / (1.0 / TRUE_DEPTH + 0.25)
+    res = drive(DFDController(CAM, refine_max_uncertainty_px=0.6, fallback=False),
+                FakePlant(TRUE_DEPTH, scripted=(wrong, _conf_for(0.7, wrong))))
     assert res.evidence != "refined" and res.frames == 4
     res = drive(DFDController(CAM, combine_gate=0.0, fallback=False),
-                FakePlant(TRUE_DEPTH, scripted=(wrong, _conf_for(0.5, wrong))))
+                FakePlant(TRUE_DEPTH, scripted=(wrong, _conf_for(0.7, wrong))))
     assert res.evidence != "refined" and res.frames == 4
     res = drive(DFDController(CAM, fallback=False), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.95)))
-    assert res.evidence != "refined" and res.frames == 4  # 0.3 dpt is many of the confident model's sigmas
+    assert res.evidence != "refined" and res.frames == 4  # 0.25 dpt is many of the confident model's sigmas
 
 
 def test_combine_focus_error():
     from tdfd.autofocus.evidence import FocusCheck, combine_focus_error
 
-    est = combine_focus_error(FocusCheck(False, 0.3, 0.1, True, ()), 0.1)
+    est = combine_focus_error(FocusCheck(False, 0.3, 0.1, True, ()), 0.1, gate=3.0)
     assert est.error_dpt == pytest.approx(0.15) and est.sigma_dpt == pytest.approx(0.1 / math.sqrt(2))
     assert est.discrepancy == pytest.approx(0.3 / (0.1 * math.sqrt(2)))
-    assert combine_focus_error(FocusCheck(False, 0.3, 0.1, False, ()), 0.1) is None  # references disagree
+    assert combine_focus_error(FocusCheck(False, 0.3, 0.1, True, ()), 0.1) is None  # 2.1 sigma apart: beyond the gate
+    assert combine_focus_error(FocusCheck(False, 0.3, 0.1, False, ()), 0.1, gate=3.0) is None  # references disagree
     assert combine_focus_error(FocusCheck(False, 0.3, 0.01, True, ()), 0.01) is None  # 21 sigma apart
-    assert combine_focus_error(FocusCheck(False, 0.3, 0.1, True, ()), math.inf) is None
-    assert combine_focus_error(FocusCheck(False, math.nan, 0.1, True, ()), 0.1) is None
+    assert combine_focus_error(FocusCheck(False, 0.3, 0.1, True, ()), math.inf, gate=3.0) is None
+    assert combine_focus_error(FocusCheck(False, math.nan, 0.1, True, ()), 0.1, gate=3.0) is None
 
 
 def _scan_through(ctrl: DFDController, cmd, image_for) -> Done:

@@ -168,7 +168,7 @@ class DFDController(StateMachine):
                  power_limits_dpt: tuple[float, float] | None = None, grid: tuple[int, int] | None = None,
                  max_uncertainty_px: float = 0.25, confidence_scale: float = 0.01, verify_tolerance_px: float = 0.8,
                  verify_z: float = 2.0, shape_range: tuple[float, float] = (1.0, 1.3), refine_steps: int = 1,
-                 agree_px: float = 0.5, combine_gate: float = 3.0, refine_z: float = 2.5,
+                 agree_px: float = 0.5, combine_gate: float = 2.0, refine_z: float = 2.5,
                  refine_max_uncertainty_px: float = 1.0, contrast_min_peak: float = 1.1) -> None:
         super().__init__(settle_s, lens_retries, capture_retries, power_limits_dpt)
         self.grid = None if grid is None else (int(grid[0]), int(grid[1]))
@@ -289,15 +289,23 @@ class DFDController(StateMachine):
         res.power_dpt = power
         res.history.append((ack.ready_s, power, agg.depth_m))
         confident = unc.blur_px <= self.max_uncertainty_px
+        interval: list[tuple[float, float]] = []
+
+        def pair_interval() -> tuple[float, float]:
+            """The in-focus powers the DFD pair allows without the model (measured once)."""
+            if not interval:
+                try:
+                    res.blur_measurements += 1
+                    interval.append(pair_focus_interval(f1.image, f1.power_dpt, f2.image, f2.power_dpt, self.camera,
+                                                        roi, shape_range=self.shape_range))
+                except InputError as exc:
+                    interval.append((math.inf, -math.inf))
+                    log.info("no pair check: %s", exc)
+            return interval[0]
+
+        slack = self.agree_px / blur_px_per_dpt(self.camera)
         if confident:  # a second opinion: the pair's own relative blur must allow the model's power
-            try:
-                res.blur_measurements += 1
-                lo, hi = pair_focus_interval(f1.image, f1.power_dpt, f2.image, f2.power_dpt, self.camera, roi,
-                                             shape_range=self.shape_range)
-            except InputError as exc:
-                lo, hi = math.inf, -math.inf
-                log.info("no pair check: %s", exc)
-            slack = self.agree_px / blur_px_per_dpt(self.camera)
+            lo, hi = pair_interval()
             res.pair_agrees = bool(lo - slack <= target <= hi + slack)
             confident = res.pair_agrees
             log.info("DFD pair without the model: in-focus power %.3f..%.3f dpt; the model's %.3f dpt %s", lo, hi,
@@ -316,7 +324,7 @@ class DFDController(StateMachine):
         tol = self.verify_tolerance_px / blur_px_per_dpt(self.camera)
         for step in range(self.refine_steps + 1):
             self.state = State.VERIFY
-            fv, _ = yield from self._capture("verify")
+            fv, _ = yield from self._capture("verify", light=self._verify_light())
             check = verify_focus(fv.image, fv.power_dpt, references, self.camera, roi_v,
                                  tolerance_dpt=tol, z=self.verify_z, shape_range=self.shape_range)
             res.verify_error_dpt = check.error_dpt
@@ -357,6 +365,11 @@ class DFDController(StateMachine):
             res.power_dpt = power
             res.history.append((ack.ready_s, power, None))
         return (yield from self._not_confirmed(f"verification failed: {check.reason}", power, (f1, f2)))
+
+    def _verify_light(self) -> str | None:
+        """The light a verification frame is taken under: the DFD pair's (it is compared with
+        that pair), none for plain DFD (a policy above that lights the pair overrides this)."""
+        return None
 
     def _declare(self, t_s: float, evidence: str) -> None:
         """Focus is declared: the lens sits at ``result.power_dpt`` and ``evidence`` says why."""

@@ -350,7 +350,7 @@ class FocusEstimate:
 
 
 def combine_focus_error(check: FocusCheck, model_sigma_dpt: float, *, model_error_dpt: float = 0.0,
-                        gate: float = 3.0) -> FocusEstimate | None:
+                        gate: float = 2.0) -> FocusEstimate | None:
     r"""The three-frame focus estimate: the model's (from the DFD pair) and the verification frame's, weighted.
 
     The lens sits at the model's in-focus power, so the model says ``e = model_error_dpt``
@@ -371,11 +371,11 @@ def combine_focus_error(check: FocusCheck, model_sigma_dpt: float, *, model_erro
         references disagree, or either uncertainty is not finite and positive.
 
     Example:
-        >>> chk = FocusCheck(False, 0.2, 0.05, True, ())
+        >>> chk = FocusCheck(False, 0.1, 0.05, True, ())
         >>> est = combine_focus_error(chk, 0.05)
         >>> round(est.error_dpt, 3), round(est.sigma_dpt, 4), round(est.discrepancy, 2)
-        (0.1, 0.0354, 2.83)
-        >>> combine_focus_error(chk, 0.01) is None   # a confident model 4 sigma away: no estimate
+        (0.05, 0.0354, 1.41)
+        >>> combine_focus_error(FocusCheck(False, 0.2, 0.05, True, ()), 0.01) is None  # 3.9 sigma apart
         True
     """
     sm, sv = float(model_sigma_dpt), float(check.sigma_dpt)
