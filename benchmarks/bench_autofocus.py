@@ -243,13 +243,14 @@ estimator charged its median wall time on this machine: **{_fmt(compute_ms)} ms*
 (measured, not assumed), and each relative-blur measurement of the controller's evidence
 **{_fmt(evidence_s * 1e3 if evidence_s is not None else None)} ms** (likewise). Time runs from the
 focus request to the declaration: the lens settled at the final power, or the verification frame's
-arrival when one was taken. Success: residual blur radius |r_b| < 1 px at the lens's optical power
+arrival when focus was declared on it. Success: residual blur radius |r_b| < 1 px at the lens's optical power
 when focus is declared.
 
 DFD declares focus only on its own evidence (section `reliability`): the estimate's uncertainty
-(model confidence and tile agreement, at most 0.2 px of blur) together with the DFD pair's own
-relative blur, or a verification frame at the final power (then a further DFD step, then a
-contrast search). "DFD, always verified" takes the verification frame every time.
+(model confidence and tile agreement, at most 0.25 px of blur) together with the DFD pair's own
+relative blur (2 frames), or a verification frame at the model's power, or the 3-frame estimate of the
+model and that frame together with the lens moved to it (3 frames); then a further DFD step, then a
+contrast search. "DFD, always verified" takes the verification frame every time.
 
 {table}
 

@@ -404,3 +404,84 @@ def test_uncertain_estimate_is_verified():
 def test_verify_never_without_confidence_is_not_declared():
     res = drive(DFDController(CAM, verify="never", fallback=False), FakePlant(TRUE_DEPTH, scripted=(TRUE_DEPTH, 0.05)))
     assert res.status == "unconfirmed" and res.frames == 2
+
+
+def _conf_for(uncertainty_px: float, depth: float = TRUE_DEPTH, b0: float = 0.01) -> float:
+    """The confidence whose predicted error is ``uncertainty_px`` of blur (conf = 1/(1+(b/b0)^2))."""
+    from tdfd.autofocus.evidence import blur_px_per_dpt
+
+    b = uncertainty_px / blur_px_per_dpt(CAM) * depth
+    return 1.0 / (1.0 + (b / b0) ** 2)
+
+
+def test_failed_verification_declares_on_the_three_frame_estimate():
+    """A wrong first estimate (1.2 px) with its honest uncertainty: the verification frame and the model
+    together put the focus within a pixel, so the lens moves there and focus is declared at 3 frames."""
+    wrong = 1.0 / (1.0 / TRUE_DEPTH + 0.25)
+    assert _blur_px(TRUE_DEPTH, CAM.in_focus_power_dpt(wrong)) > 1.1
+    res = drive(DFDController(CAM), FakePlant(TRUE_DEPTH, scripted=(wrong, _conf_for(0.7, wrong))))
+    assert res.uncertainty_px == pytest.approx(0.7, rel=0.01)
+    assert res.status == "focused" and res.evidence == "refined" and res.frames == 3
+    assert res.verified is False and res.refine_count == 1 and res.lens_commands == 4
+    assert _blur_px(TRUE_DEPTH, res.power_dpt) < 0.5
+
+
+def test_three_frame_estimate_needs_both_opinions():
+    """No declaration on the three-frame estimate when the model's own uncertainty is above
+    ``refine_max_uncertainty_px``, or when the model confidently contradicts the verification frame."""
+    wrong = 1.0 / (1.0 / TRUE_DEPTH + 0.25)
+    res = drive(DFDController(CAM, refine_max_uncertainty_px=0.6, fallback=False),
+                FakePlant(TRUE_DEPTH, scripted=(wrong, _conf_for(0.7, wrong))))
+    assert res.evidence != "refined" and res.frames == 4
+    res = drive(DFDController(CAM, combine_gate=0.0, fallback=False),
+                FakePlant(TRUE_DEPTH, scripted=(wrong, _conf_for(0.7, wrong))))
+    assert res.evidence != "refined" and res.frames == 4
+    res = drive(DFDController(CAM, fallback=False), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.95)))
+    assert res.evidence != "refined" and res.frames == 4  # 0.25 dpt is many of the confident model's sigmas
+
+
+def test_combine_focus_error():
+    from tdfd.autofocus.evidence import FocusCheck, combine_focus_error
+
+    est = combine_focus_error(FocusCheck(False, 0.3, 0.1, True, ()), 0.1, gate=3.0)
+    assert est.error_dpt == pytest.approx(0.15) and est.sigma_dpt == pytest.approx(0.1 / math.sqrt(2))
+    assert est.discrepancy == pytest.approx(0.3 / (0.1 * math.sqrt(2)))
+    assert combine_focus_error(FocusCheck(False, 0.3, 0.1, True, ()), 0.1) is None  # 2.1 sigma apart: beyond the gate
+    assert combine_focus_error(FocusCheck(False, 0.3, 0.1, False, ()), 0.1, gate=3.0) is None  # references disagree
+    assert combine_focus_error(FocusCheck(False, 0.3, 0.01, True, ()), 0.01) is None  # 21 sigma apart
+    assert combine_focus_error(FocusCheck(False, 0.3, 0.1, True, ()), math.inf, gate=3.0) is None
+    assert combine_focus_error(FocusCheck(False, math.nan, 0.1, True, ()), 0.1, gate=3.0) is None
+
+
+def _scan_through(ctrl: DFDController, cmd, image_for) -> Done:
+    k = 0
+    while not isinstance(cmd, Done):
+        if isinstance(cmd, Capture):
+            nxt = ack(cmd.then_power_dpt) if cmd.then_power_dpt is not None else None
+            cmd = ctrl.step(Frame(image_for(k), 0.0, 0.1 * k, 0.1 * k, 0.1 * k, cmd.tag, lens=nxt))
+            k += 1
+        else:
+            cmd = ctrl.step(ack(cmd.power_dpt))
+    return cmd
+
+
+def test_contrast_search_without_a_peak_is_not_declared():
+    """A texture-less target: the fall-back scan sees sensor noise only; its 'peak' is not declared."""
+    flat = lambda k: (0.5 + np.random.default_rng(100 + k).normal(0, 0.005, (192, 256))).astype(np.float32)
+    ctrl = DFDController(CAM)
+    ctrl.start()
+    ctrl.step(ack(P1))
+    ctrl.step(frame("f1", P1, lens=ack(P2), image=flat(-1)))
+    ctrl.step(frame("f2", P2, image=flat(-2)))
+    cmd = ctrl.step(grid(0.5, conf=0.9))
+    assert ctrl.state is State.CONTRAST
+    r = _scan_through(ctrl, cmd, flat).result
+    assert r.status == "unconfirmed" and r.evidence is None and r.method == "contrast"
+    assert "no contrast peak" in r.fallback_reason and "texture-less" in r.fallback_reason
+    # the same scan with the check off declares its noise peak (what the check prevents)
+    ctrl = DFDController(CAM, contrast_min_peak=1.0)
+    ctrl.start()
+    ctrl.step(ack(P1))
+    ctrl.step(frame("f1", P1, lens=ack(P2), image=flat(-1)))
+    ctrl.step(frame("f2", P2, image=flat(-2)))
+    assert _scan_through(ctrl, ctrl.step(grid(0.5, conf=0.9)), flat).result.status == "focused"

@@ -233,6 +233,11 @@ class AssistedDFDController(DFDController):
                                   tiles=int(mask.sum()), inliers=0), pooled
         return aggregate_depth(obs.depth_m, obs.confidence, pooled), pooled
 
+    def _verify_light(self) -> str | None:
+        """A verification frame is compared with the DFD pair: lit like it (an unlit frame of a
+        texture-less target shows nothing to compare)."""
+        return self.lit.pattern if self.lit is not None else None
+
     # ------------------------------------------------------------------ fallback
     def _contrast(self, centre_dpt: float | None) -> Gen:
         """Before contrast-detect AF takes over from an untrusted unlit estimate, try the light once."""
@@ -261,5 +266,6 @@ class AssistedDFDController(DFDController):
 # the hooks this policy overrides or uses in DFDController / StateMachine:
 #   DFDController._capture_pair(p1, p2) -> (f1, f2): the capture steps of one cycle;
 #   DFDController._aggregate(obs, roi, offset) -> (DepthAggregate, mask): the ROI depth and its tiles;
+#   DFDController._verify_light() -> pattern or None: the light of the verification frames;
 #   StateMachine._capture(tag, then_power_dpt=None, light=None): Capture(..., light=...).
 

@@ -32,10 +32,14 @@ One single-shot DFD focus (paper sec. 3, "focal length as the varying parameter"
    the model, allows its power (declared when the lens has settled), or a
    ``Capture("verify")`` frame at ``P_e`` confirms it (its relative blur against the DFD
    pair, measured on the ROI without the depth model). A failed verification gives a
-   measured focus error: the lens moves by it and verifies again (``refine_steps``), then
-   a contrast-detect search around ``P_e`` takes over (or, with ``fallback=False``, the
-   run ends ``"unconfirmed"``). :attr:`~tdfd.autofocus.messages.AFResult.evidence` says
-   which evidence declared the focus.
+   measured focus error: when it and the model's estimate agree, their weighted mean
+   (:func:`~tdfd.autofocus.evidence.combine_focus_error`, the three-frame estimate) is
+   known well enough, the lens moves there and focus is declared (evidence
+   ``"refined"``, still 3 frames); otherwise the lens moves by the measured error and
+   verifies again (``refine_steps``), then a contrast-detect search around ``P_e`` takes
+   over (or, with ``fallback=False``, the run ends ``"unconfirmed"``); a search without a
+   peak (``contrast_min_peak``) declares nothing.
+   :attr:`~tdfd.autofocus.messages.AFResult.evidence` says which evidence declared the focus.
 
 When the ROI confidence is too low (a texture-less target) the controller says so
 (log and :attr:`~tdfd.autofocus.messages.AFResult.fallback_reason`) and falls back to the contrast-detect search
@@ -85,7 +89,8 @@ from ..errors import DTypeError, InputError
 from ..pair_check import pair_problem
 from .aggregate import DepthAggregate, aggregate_depth
 from .contrast import ContrastSearch
-from .evidence import blur_px_per_dpt, estimate_uncertainty, pair_focus_interval, verify_focus
+from .evidence import (blur_px_per_dpt, combine_focus_error, estimate_uncertainty, pair_focus_interval,
+                       verify_focus)
 from .machine import Abort, Gen, StateMachine
 from .messages import Command, Estimate, Estimation, EstimateFault, Frame, Observation, State
 from .roi import Roi, roi_crop_box, roi_tile_mask
@@ -121,6 +126,17 @@ class DFDController(StateMachine):
             (:func:`tdfd.autofocus.evidence.pair_focus_interval`).
         refine_steps: after a failed verification, this many further DFD steps (move by the
             focus error the verification measured, verify again) before the contrast search.
+        combine_gate: after a failed first verification, the model's estimate and the
+            verification frame's are combined (:func:`~tdfd.autofocus.evidence.combine_focus_error`)
+            when they lie within this many combined standard uncertainties (0 disables).
+        refine_z: the combined estimate is declared (after moving the lens to it) when
+            ``refine_z`` of its standard uncertainties are within ``verify_tolerance_px``.
+        refine_max_uncertainty_px: only a model estimate at most this uncertain (px) takes
+            part in the combined estimate (a less certain one would leave the verification
+            frame alone to decide).
+        contrast_min_peak: the contrast fall-back declares its peak only when the sharpest
+            frame of the search is at least this many times the least sharp (else the run
+            ends ``"unconfirmed"``: a texture-less target shows only noise).
         min_confidence: mean ROI confidence below which DFD is not trusted and
             contrast-detect AF takes over (the scale is the estimator's: see
             :func:`tdfd.autofocus.estimators.suggested_min_confidence`).
@@ -150,9 +166,10 @@ class DFDController(StateMachine):
                  continuous: bool = False, refocus_drop: float = 0.25, refocus_interval_s: float = 0.5,
                  dry_run: bool = False, lens_retries: int = 2, capture_retries: int = 1,
                  power_limits_dpt: tuple[float, float] | None = None, grid: tuple[int, int] | None = None,
-                 max_uncertainty_px: float = 0.2, confidence_scale: float = 0.01, verify_tolerance_px: float = 0.8,
+                 max_uncertainty_px: float = 0.25, confidence_scale: float = 0.01, verify_tolerance_px: float = 0.8,
                  verify_z: float = 2.0, shape_range: tuple[float, float] = (1.0, 1.3), refine_steps: int = 1,
-                 agree_px: float = 0.5) -> None:
+                 agree_px: float = 0.5, combine_gate: float = 2.0, refine_z: float = 2.5,
+                 refine_max_uncertainty_px: float = 1.0, contrast_min_peak: float = 1.1) -> None:
         super().__init__(settle_s, lens_retries, capture_retries, power_limits_dpt)
         self.grid = None if grid is None else (int(grid[0]), int(grid[1]))
         if not 0 <= min_confidence <= 1:
@@ -168,6 +185,12 @@ class DFDController(StateMachine):
         self.verify_tolerance_px, self.verify_z = float(verify_tolerance_px), float(verify_z)
         self.shape_range = (float(shape_range[0]), float(shape_range[1]))
         self.refine_steps, self.agree_px = int(refine_steps), float(agree_px)
+        if not (combine_gate >= 0 and refine_z > 0 and refine_max_uncertainty_px >= 0 and contrast_min_peak >= 1):
+            raise InputError("need combine_gate >= 0, refine_z > 0, refine_max_uncertainty_px >= 0, "
+                             "contrast_min_peak >= 1")
+        self.contrast_min_peak = float(contrast_min_peak)
+        self.combine_gate, self.refine_z = float(combine_gate), float(refine_z)
+        self.refine_max_uncertainty_px = float(refine_max_uncertainty_px)
         self.min_confidence, self.fallback = float(min_confidence), bool(fallback)
         self.min_texture_snr = float(min_texture_snr)
         self.contrast_kwargs = dict(contrast or {})
@@ -266,15 +289,23 @@ class DFDController(StateMachine):
         res.power_dpt = power
         res.history.append((ack.ready_s, power, agg.depth_m))
         confident = unc.blur_px <= self.max_uncertainty_px
+        interval: list[tuple[float, float]] = []
+
+        def pair_interval() -> tuple[float, float]:
+            """The in-focus powers the DFD pair allows without the model (measured once)."""
+            if not interval:
+                try:
+                    res.blur_measurements += 1
+                    interval.append(pair_focus_interval(f1.image, f1.power_dpt, f2.image, f2.power_dpt, self.camera,
+                                                        roi, shape_range=self.shape_range))
+                except InputError as exc:
+                    interval.append((math.inf, -math.inf))
+                    log.info("no pair check: %s", exc)
+            return interval[0]
+
+        slack = self.agree_px / blur_px_per_dpt(self.camera)
         if confident:  # a second opinion: the pair's own relative blur must allow the model's power
-            try:
-                res.blur_measurements += 1
-                lo, hi = pair_focus_interval(f1.image, f1.power_dpt, f2.image, f2.power_dpt, self.camera, roi,
-                                             shape_range=self.shape_range)
-            except InputError as exc:
-                lo, hi = math.inf, -math.inf
-                log.info("no pair check: %s", exc)
-            slack = self.agree_px / blur_px_per_dpt(self.camera)
+            lo, hi = pair_interval()
             res.pair_agrees = bool(lo - slack <= target <= hi + slack)
             confident = res.pair_agrees
             log.info("DFD pair without the model: in-focus power %.3f..%.3f dpt; the model's %.3f dpt %s", lo, hi,
@@ -290,12 +321,12 @@ class DFDController(StateMachine):
             return (yield from self._not_confirmed(reason, power, (f1, f2)))
         references = [(f1.image, f1.power_dpt), (f2.image, f2.power_dpt)]
         roi_v = self._roi_for(f1.image.shape[-2:])
+        tol = self.verify_tolerance_px / blur_px_per_dpt(self.camera)
         for step in range(self.refine_steps + 1):
             self.state = State.VERIFY
-            fv, _ = yield from self._capture("verify")
+            fv, _ = yield from self._capture("verify", light=self._verify_light())
             check = verify_focus(fv.image, fv.power_dpt, references, self.camera, roi_v,
-                                 tolerance_dpt=self.verify_tolerance_px / blur_px_per_dpt(self.camera),
-                                 z=self.verify_z, shape_range=self.shape_range)
+                                 tolerance_dpt=tol, z=self.verify_z, shape_range=self.shape_range)
             res.verify_error_dpt = check.error_dpt
             res.blur_measurements += len(check.estimates)
             log.info("verify %d at %.3f dpt: focus error %+.3f +- %.3f dpt: %s", step + 1, power, check.error_dpt,
@@ -306,6 +337,25 @@ class DFDController(StateMachine):
                 return f1, f2
             res.verified = False
             references.append((fv.image, fv.power_dpt))
+            if step == 0 and self.combine_gate > 0 and unc.blur_px <= self.refine_max_uncertainty_px:
+                # the three-frame estimate: the model's (from the pair) and the verification frame's, weighted
+                est = combine_focus_error(check, unc.sigma_dpt, gate=self.combine_gate)
+                goal = None if est is None else power - est.error_dpt
+                lo_p, hi_p = self.power_limits_dpt or (-math.inf, math.inf)
+                if est is not None and goal is not None and self.refine_z * est.sigma_dpt <= tol and lo_p <= goal <= hi_p:
+                    log.info("three-frame estimate: focus error %+.3f +- %.3f dpt (%.1f sigma between model and "
+                             "verification): declared at %.3f dpt", est.error_dpt, est.sigma_dpt, est.discrepancy, goal)
+                    res.refine_count += 1
+                    if abs(goal - power) >= 0.005:
+                        self.state = State.MOVE_FOCUS
+                        ack = yield from self._set_power(goal)
+                        t_declare = ack.ready_s
+                        res.history.append((ack.ready_s, goal, None))
+                    else:
+                        t_declare = fv.t_ready_s
+                    res.power_dpt = goal
+                    self._declare(t_declare, "refined")
+                    return f1, f2
             if step == self.refine_steps or not (check.consistent and math.isfinite(check.error_dpt)):
                 break
             power = self.check_power(power - check.error_dpt)  # a further DFD step with the verification frame
@@ -315,6 +365,11 @@ class DFDController(StateMachine):
             res.power_dpt = power
             res.history.append((ack.ready_s, power, None))
         return (yield from self._not_confirmed(f"verification failed: {check.reason}", power, (f1, f2)))
+
+    def _verify_light(self) -> str | None:
+        """The light a verification frame is taken under: the DFD pair's (it is compared with
+        that pair), none for plain DFD (a policy above that lights the pair overrides this)."""
+        return None
 
     def _declare(self, t_s: float, evidence: str) -> None:
         """Focus is declared: the lens sits at ``result.power_dpt`` and ``evidence`` says why."""
@@ -378,8 +433,19 @@ class DFDController(StateMachine):
         ack = yield from self._set_power(power)
         self.result.method = "contrast"
         self.result.power_dpt = power
-        self._declare(ack.ready_s, "contrast")
         self.result.history.append((ack.ready_s, power, None))
+        values = [v for _, v in search.samples]
+        if values and not max(values) >= self.contrast_min_peak * min(values) > 0:
+            # a peak that hardly rises above the scan's least sharp frame is sensor noise, not focus
+            reason = (f"no contrast peak: the sharpest frame is {max(values) / max(min(values), 1e-300):.3f}x the "
+                      f"least sharp (below {self.contrast_min_peak:g}x)")
+            prior = self.result.fallback_reason
+            self.result.fallback_reason = f"{prior}; {reason}" if prior else reason
+            log.warning("%s: focus not declared", reason)
+            self.result.status = "unconfirmed"
+            self.result.t_focus_s = None
+            return
+        self._declare(ack.ready_s, "contrast")
 
     def _track(self, pair: tuple[Frame, Frame] | None) -> Gen:
         """Continuous mode: watch live frames at focus; re-run DFD when they blur or periodically."""

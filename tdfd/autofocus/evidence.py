@@ -47,6 +47,8 @@ __all__ = [
     "FocusCheck",
     "verify_focus",
     "pair_focus_interval",
+    "FocusEstimate",
+    "combine_focus_error",
 ]
 
 
@@ -329,3 +331,59 @@ def pair_focus_interval(image_f1: np.ndarray, power_f1_dpt: float, image_f2: np.
     mid = 0.5 * (float(power_f1_dpt) + float(power_f2_dpt))
     cands = [mid - dd / (2.0 * a * m2 * dp) for a in shape_range for dd in (d - z * sd, d + z * sd)]
     return min(cands), max(cands)
+
+
+@dataclass(frozen=True)
+class FocusEstimate:
+    """The focus error of the lens's present power from the model's estimate and a verification frame together.
+
+    Attributes:
+        error_dpt: ``e = P_v - P*`` (dpt): the lens moves by ``-error_dpt`` to focus.
+        sigma_dpt: its standard uncertainty (dpt).
+        discrepancy: the model's and the verification's errors apart, in their combined
+            standard uncertainties.
+    """
+
+    error_dpt: float
+    sigma_dpt: float
+    discrepancy: float
+
+
+def combine_focus_error(check: FocusCheck, model_sigma_dpt: float, *, model_error_dpt: float = 0.0,
+                        gate: float = 2.0) -> FocusEstimate | None:
+    r"""The three-frame focus estimate: the model's (from the DFD pair) and the verification frame's, weighted.
+
+    The lens sits at the model's in-focus power, so the model says ``e = model_error_dpt``
+    (0) with its uncertainty ``model_sigma_dpt`` (:func:`estimate_uncertainty`); the
+    verification frame measures ``e`` without the model (:func:`verify_focus`). The two are
+    independent opinions: when they agree within ``gate`` combined standard uncertainties
+    and the verification's references agree among themselves, their inverse-variance
+    weighted mean is the estimate, with ``sigma = (1/s_m^2 + 1/s_v^2)^{-1/2}``.
+
+    Args:
+        check: the verification's :class:`FocusCheck`.
+        model_sigma_dpt: the model's standard uncertainty of the in-focus power (dpt).
+        model_error_dpt: the model's focus error of the present power (dpt; 0 when the lens sits at its estimate).
+        gate: the largest discrepancy (in combined standard uncertainties) still combined.
+
+    Returns:
+        A :class:`FocusEstimate`, or ``None`` when the two disagree, the verification's
+        references disagree, or either uncertainty is not finite and positive.
+
+    Example:
+        >>> chk = FocusCheck(False, 0.1, 0.05, True, ())
+        >>> est = combine_focus_error(chk, 0.05)
+        >>> round(est.error_dpt, 3), round(est.sigma_dpt, 4), round(est.discrepancy, 2)
+        (0.05, 0.0354, 1.41)
+        >>> combine_focus_error(FocusCheck(False, 0.2, 0.05, True, ()), 0.01) is None  # 3.9 sigma apart
+        True
+    """
+    sm, sv = float(model_sigma_dpt), float(check.sigma_dpt)
+    if not (check.consistent and math.isfinite(check.error_dpt) and 0 < sm < math.inf and 0 < sv < math.inf):
+        return None
+    discrepancy = abs(check.error_dpt - model_error_dpt) / math.hypot(sm, sv)
+    if discrepancy > gate:
+        return None
+    wm, wv = 1.0 / sm**2, 1.0 / sv**2
+    return FocusEstimate((wm * model_error_dpt + wv * check.error_dpt) / (wm + wv), 1.0 / math.sqrt(wm + wv),
+                         discrepancy)

@@ -228,8 +228,9 @@ class AFResult:
         texture_snr: ROI band-pass contrast over the noise floor in the sharper DFD frame.
         verified: result of the last verification frame, ``None`` if none was taken.
         evidence: what declared the focus: ``"uncertainty"`` (the estimate's own),
-            ``"verification"`` (a verification frame), ``"contrast"`` (a contrast-detect
-            peak); ``None`` if focus was not declared.
+            ``"verification"`` (a verification frame), ``"refined"`` (the three-frame estimate:
+            the model's and a failed verification frame's focus errors together, the lens moved
+            there), ``"contrast"`` (a contrast-detect peak); ``None`` if focus was not declared.
         uncertainty_px: the DFD estimate's uncertainty as a blur radius (px), ``None`` without one.
         verify_error_dpt: the focus error the last verification frame measured (dpt).
         dfd_power_dpt: the in-focus power of the (last) DFD estimate, before any refinement (dpt).

@@ -32,7 +32,7 @@ TRIAL_KEYS = ("target_depth_m", "estimated_depth_m", "ideal_power_dpt", "final_p
               "frames", "lens_commands", "time_ms", "method")
 #: keys added to each trial beyond the contract (docs/ARCHITECTURE.md): ``declared`` (the
 #: controller declared focus), ``evidence`` (``"uncertainty"``, ``"verification"``,
-#: ``"contrast"`` or ``null``), ``verified`` (the last verification frame's verdict, ``null``
+#: ``"refined"``, ``"contrast"`` or ``null``), ``verified`` (the last verification frame's verdict, ``null``
 #: if none was taken).
 EXTRA_TRIAL_KEYS = ("declared", "evidence", "verified")
 #: frame budget of the DFD success criterion (issue 7: in focus with at most 3 frames).
@@ -108,7 +108,7 @@ def summarise(records: Sequence[Any], settings: dict[str, Any] | None = None) ->
             "declared_out_of_focus_rate": _num(sum(1 for r in rs if r.status == "focused" and not r.in_focus) / n, 4)
             if n else None,
             "evidence": {k: sum(1 for r in rs if getattr(r, "evidence", None) == k)
-                         for k in ("uncertainty", "verification", "contrast")},
+                         for k in ("uncertainty", "verification", "refined", "contrast")},
         }
         if m == "dfd":
             good = [r for r in ok if r.frames <= MAX_DFD_FRAMES]

@@ -287,7 +287,7 @@ class SimBench:
         final = self.lens.optical_power_at(t_end)
         resid = abs(float(camera_blur_radii_px(self.camera, target, final)))
         t0 = result.t_start_s if result.t_start_s is not None else t_end
-        reason = result.error if result.status != "focused" else result.fallback_reason
+        reason = (result.error or result.fallback_reason) if result.status != "focused" else result.fallback_reason
         if result.status == "focused" and result.error:  # e.g. clamped to the lens range
             reason = result.error + (f"; {result.fallback_reason}" if result.fallback_reason else "")
         compute = sum(plant.compute_times_s) * 1e3 if plant.compute_times_s else None
