@@ -93,7 +93,9 @@ class OnnxEstimator:
 
     The runtime checks every pair (:func:`tdfd.pair_check.pair_problem`): a pair that is no
     DFD pair (identical, black or saturated frames) comes back with zero confidence, and its
-    reason is kept in :attr:`last_problem` for the loop to report.
+    reason is kept in :attr:`last_problem` for callers outside the autofocus loop (the DFD
+    policy checks the whole frames itself before it asks for an estimate, and reports a
+    capture fault).
 
     Args:
         path: the ONNX file (default: :func:`default_model_path`).
