@@ -95,6 +95,9 @@ class SynthConfig:
             rest are the incoherent projector).
         speckle_prob: probability of laser speckle on a coherent pattern.
         textureless_prob: probability that an actively lit scene is a texture-less target.
+        mask_feature_px: range of the pattern's feature size (bar width, period / 2, ...) in
+            pixels at the pattern's reference distance, drawn log-uniformly. The paper's
+            two-bar mask seen by the reference camera has bars about 30 px wide.
     Optics:
         psf_shapes: shapes drawn uniformly from (:data:`PSF_SHAPES`; ``"beta"`` draws a
             power-exponential exponent from ``beta_range`` log-uniformly).
@@ -129,6 +132,7 @@ class SynthConfig:
     coherent_fraction: float = 0.6
     speckle_prob: float = 0.5
     textureless_prob: float = 0.5
+    mask_feature_px: tuple = (3.0, 24.0)
     psf_shapes: tuple = PSF_SHAPES
     beta_range: tuple = (2.5, 16.0)
     diffraction_prob: float = 0.7
@@ -184,6 +188,9 @@ class SynthConfig:
             raise InputError(f"bits must lie in [8, 16], got {self.bits}")
         if self.tile_window not in ("hann2", "hann", "box"):
             raise InputError(f"tile_window must be 'hann2', 'hann' or 'box', got {self.tile_window!r}")
+        self.mask_feature_px = tuple(float(v) for v in self.mask_feature_px)
+        if len(self.mask_feature_px) != 2 or not 1.0 <= self.mask_feature_px[0] <= self.mask_feature_px[1]:
+            raise InputError(f"mask_feature_px must be (low, high) px with 1 <= low <= high, got {self.mask_feature_px}")
         if not 0 <= self.breathing_max <= 0.05 or self.shift_max_px < 0 or self.layer_spacing <= 0:
             raise InputError("need 0 <= breathing_max <= 0.05, shift_max_px >= 0 and layer_spacing > 0")
         if self.depth_margin < 0 or self.max_objects < 1:

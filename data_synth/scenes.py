@@ -148,10 +148,11 @@ def region_shape(g: torch.Generator, h: int, w: int) -> tuple[torch.Tensor, dict
 
 
 # ----------------------------------------------------------------------------- illumination
-def _draw_mask(g: torch.Generator, camera: Camera, ref_depth_m: float) -> tuple[MaskPattern, dict]:
-    """A random mask with features of 3 to 24 px at ``ref_depth_m`` (physical units)."""
+def _draw_mask(g: torch.Generator, camera: Camera, ref_depth_m: float, feature_px: tuple[float, float]
+               ) -> tuple[MaskPattern, dict]:
+    """A random mask with features of ``feature_px`` pixels at ``ref_depth_m`` (physical units)."""
     m_per_px = camera.pixel_pitch_m * ref_depth_m / camera.sensor_distance_m
-    feat = log_uniform(g, 3.0, 24.0) * m_per_px
+    feat = log_uniform(g, *feature_px) * m_per_px
     kind = choice(g, ("bars", "rect", "grating", "dots", "checker", "random"), (0.3, 0.1, 0.2, 0.15, 0.1, 0.15))
     fov = 256 * m_per_px
     beam = uniform(g, 0.5, 1.5) * fov
@@ -186,7 +187,7 @@ def draw_illumination(g: torch.Generator, cfg: SynthConfig, camera: Camera, size
     ref = math.sqrt(near * far)
     h, w = size
     if bernoulli(g, cfg.coherent_fraction):
-        mask, minfo = _draw_mask(g, camera, ref)
+        mask, minfo = _draw_mask(g, camera, ref, cfg.mask_feature_px)
         hy, hx = mask.half_extent_m
         orders = (choice(g, (1, 3, 5)), choice(g, (1, 3, 5)))
         # order spacing at the reference distance: 1.1 to 2 pattern extents
@@ -211,7 +212,7 @@ def draw_illumination(g: torch.Generator, cfg: SynthConfig, camera: Camera, size
     else:
         focus = 1.0 / uniform(g, 1.0 / far, 1.0 / near)
     far_limit = 1.0 / (1.0 / focus - df) if 1.0 / focus > df else 1e3
-    mask, minfo = _draw_mask(g, camera, focus)
+    mask, minfo = _draw_mask(g, camera, focus, cfg.mask_feature_px)
     src = ProjectorIllumination(mask=mask, focus_m=focus, dof_near_m=focus - 1.0 / (1.0 / focus + dn),
                                 dof_far_m=far_limit - focus, coc_rad=paper.coc_rad,
                                 axis_offset_rad=(uniform(g, -0.02, 0.02), uniform(g, -0.02, 0.02)))
