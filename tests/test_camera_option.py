@@ -12,6 +12,7 @@ import pytest
 from tdfd import Camera
 from tdfd.camera_file import CameraFile, resolve_camera
 from tdfd.errors import CameraError
+from tests.tiny_training import TINY
 from training.config import ConfigError, load_config
 from training.data import build_model
 
@@ -22,15 +23,6 @@ APERTURE = Camera(aperture_m=1.2e-3, apertures_m=(1.2e-3, 0.6e-3), sensor_distan
                   lens_powers_dpt=(0.0, 0.0), pixel_pitch_m=3.45e-6, depth_range_m=(0.3, 1.0),
                   mu_px_per_m=1 / (2 * 3.45e-6))
 
-TINY = [
-    "data.dataset=test_training_standin:StandinDataset",
-    "data.height=64", "data.width=64", "data.batch_size=4", "data.val_size=4", "data.num_workers=0",
-    "model.tile=32", "model.stride=16", "model.hidden=4", "model.blocks=1",
-    "optim.steps=2", "optim.warmup_steps=1", "optim.normaliser_batches=1",
-    "log_every=1", "val_every=2", "ckpt_every=2", "threads=1",
-    "eval.bins=1", "eval.samples=2", "eval.textureless_samples=0", "eval.height=64", "eval.width=64",
-    "eval.options={}",
-]
 
 
 @pytest.fixture

@@ -13,21 +13,12 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from tests.tiny_training import TINY
 from training.config import load_config
 from training.loop import CHECKPOINT_NAME, train
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-
-TINY = [
-    "data.dataset=test_training_standin:StandinDataset",
-    "data.height=64", "data.width=64", "data.batch_size=4", "data.val_size=8", "data.num_workers=0",
-    "model.tile=32", "model.stride=16", "model.hidden=8", "model.blocks=1",
-    "optim.steps=6", "optim.warmup_steps=2", "optim.normaliser_batches=1",
-    "log_every=2", "val_every=3", "ckpt_every=2", "threads=1",
-    "eval.bins=2", "eval.samples=4", "eval.textureless_samples=2", "eval.height=64", "eval.width=64",
-    "eval.options={}", 'eval.textureless_options={"textureless_fraction": 1.0}',
-]
 
 
 @pytest.fixture(autouse=True)
