@@ -15,7 +15,8 @@ in torch and in the ONNX graph): frames at powers ``P1``, ``P2`` have scales ``(
 ``(k1, k2) = (sqrt(s2/s1), sqrt(s1/s2))`` (:func:`registration_magnifications`) about the
 centre of the frames given. A crop whose centre is not the optical centre needs a
 translation per frame on top (:func:`window_shifts`), applied when the crop is cut
-(:func:`crop_shifted`; :class:`tdfd.runtime.DepthRuntime` does it for ``window=``). This
+(rounded to whole pixels, :func:`crop_offset`; :class:`tdfd.runtime.DepthRuntime` does it for
+``window=``). This
 module needs numpy only (the device runtime imports it).
 
 Example:
@@ -37,7 +38,7 @@ import numpy as np
 
 from .errors import InputError, NonFiniteError, RangeError, ShapeError
 
-__all__ = ["lanczos_matrix", "magnify", "register_to_power", "crop_shifted", "check_magnification_per_dpt",
+__all__ = ["lanczos_matrix", "magnify", "register_to_power", "crop_offset", "check_magnification_per_dpt",
            "breathing_scales", "registration_magnifications", "window_shifts", "LANCZOS_A",
            "MAX_MAGNIFICATION_PER_DPT"]
 
@@ -155,42 +156,15 @@ def window_shifts(centre_offset_px: float, magnifications: Sequence[float]) -> t
     return tuple(-d * (1.0 - 1.0 / float(k)) for k in magnifications)  # type: ignore[return-value]
 
 
-def _lanczos_band(src: np.ndarray, n_in: int, a: int) -> tuple[int, int, np.ndarray]:
-    """Rows of Lanczos weights sampling a length-``n_in`` signal at positions ``src``, over the
-    input band ``lo … hi - 1`` they touch (taps outside the signal dropped, rows renormalised)."""
-    lo = max(int(np.floor(src.min())) - a + 1, 0)
-    hi = min(int(np.floor(src.max())) + a + 1, n_in)
-    if hi <= lo:
-        raise ShapeError(f"sample positions {src.min():.1f} … {src.max():.1f} lie outside the {n_in}-px input")
-    t = src[:, None] - np.arange(lo, hi)[None, :]
-    w = np.sinc(t) * np.sinc(t / a) * (np.abs(t) < a)
-    s = w.sum(1, keepdims=True)
-    if np.any(np.abs(s) < 1e-6):
-        raise ShapeError(f"sample positions {src.min():.1f} … {src.max():.1f} lie outside the {n_in}-px input")
-    return lo, hi, w / s
-
-
-def crop_shifted(image: np.ndarray, window: tuple[int, int, int, int], shift: tuple[float, float] = (0.0, 0.0),
-                 a: int = LANCZOS_A) -> np.ndarray:
-    """The crop ``window = (y0, y1, x0, x1)`` of ``image`` ``(..., H, W)`` moved by a sub-pixel
-    ``shift = (dy, dx)``: output pixel ``(u, v)`` samples the image at ``(y0 + u + dy, x0 + v + dx)``.
-
-    A zero shift along an axis is plain slicing (exact); otherwise separable Lanczos
-    interpolation over the rows (columns) the crop touches, beyond the image's border with the
-    taps that exist (renormalised).
-
-    Args:
-        image: ``(..., H, W)`` array.
-        window: ``(y0, y1, x0, x1)`` pixel box (ends exclusive) inside the image.
-        shift: ``(dy, dx)`` in pixels (finite).
-        a: Lanczos half-width.
-
-    Returns:
-        ``(..., y1 - y0, x1 - x0)``, the image's dtype when no shift, else float64.
+def crop_offset(image: np.ndarray, window: tuple[int, int, int, int], shift: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """The crop ``window = (y0, y1, x0, x1)`` of ``image`` ``(..., H, W)`` moved by whole pixels
+    ``shift = (dy, dx)``: output pixel ``(u, v)`` is image pixel ``(y0 + u + dy, x0 + v + dx)``,
+    the nearest border pixel where that lies outside the image (no interpolation, so the
+    sensor noise stays white).
 
     Raises:
         ShapeError: the window is empty or not inside the image.
-        NonFiniteError: a non-finite shift.
+        InputError: a shift that is not a whole number of pixels.
     """
     x = np.asarray(image)
     if x.ndim < 2:
@@ -199,16 +173,11 @@ def crop_shifted(image: np.ndarray, window: tuple[int, int, int, int], shift: tu
     y0, y1, x0, x1 = (int(v) for v in window)
     if not (0 <= y0 < y1 <= n_y and 0 <= x0 < x1 <= n_x):
         raise ShapeError(f"window {tuple(window)} is empty or not inside the {n_y}x{n_x} image")
-    dy, dx = (float(v) for v in shift)
-    if not (math.isfinite(dy) and math.isfinite(dx)):
-        raise NonFiniteError(f"shift must be finite, got {shift}")
-    out = x
-    if dy == 0.0:
-        out = out[..., y0:y1, :]
-    else:
-        lo, hi, wy = _lanczos_band(y0 + np.arange(y1 - y0) + dy, n_y, a)
-        out = np.matmul(wy, out[..., lo:hi, :].astype(np.float64))
-    if dx == 0.0:
-        return out[..., x0:x1]
-    lo, hi, wx = _lanczos_band(x0 + np.arange(x1 - x0) + dx, n_x, a)
-    return np.matmul(out[..., lo:hi].astype(np.float64), wx.T)
+    if any(isinstance(v, bool) or not float(v).is_integer() for v in shift):
+        raise InputError(f"shift must be whole pixels, got {shift}")
+    dy, dx = (int(v) for v in shift)
+    if dy == 0 and dx == 0:
+        return x[..., y0:y1, x0:x1]
+    rows = np.clip(np.arange(y0, y1) + dy, 0, n_y - 1)
+    cols = np.clip(np.arange(x0, x1) + dx, 0, n_x - 1)
+    return x[..., rows[:, None], cols[None, :]]

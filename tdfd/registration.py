@@ -14,11 +14,12 @@ the depth grid stays aligned with their mean, as :func:`tdfd.warp.misregister` s
 forward model's breathing). Output pixel ``p`` of a frame magnified by ``k`` samples the
 input at ``c + (p - c) / k`` with ``c = (n - 1) / 2``.
 
-Resampling is separable windowed sinc (Lanczos, ``a = LANCZOS_A`` taps each side, weights
-normalised to unit sum, reflected borders), as :func:`tdfd.breathing.magnify`: its passband is
-flat to well above the frequencies the estimator measures, unlike bilinear (or cubic)
-interpolation, whose position-dependent low-pass would add blur to one frame more than to
-the other. Each axis is ``2a`` gathers of the input along that axis with per-row weights
+Resampling moves whole pixels (nearest source pixel, separable: one gather per axis),
+never interpolates: any interpolator, Lanczos included, lowers the sensor noise near the
+Nyquist frequency by an amount that changes with each pixel's fractional position, while
+the estimator's noise model assumes white noise; on the breathing benchmark Lanczos
+registration of noisy frames cost more than the breathing itself (see :func:`_resample_rows`).
+What remains is at most half a pixel of misalignment per frame. The gather's indices are
 computed from the axis length, so the graph stays valid for any input height and width
 (dynamic shapes in ONNX). A magnification of exactly 1 is the identity (nothing resampled),
 and :class:`BreathingRegistration` with ``m = 0`` (or equal powers) returns its inputs.
@@ -47,65 +48,46 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from .breathing import (LANCZOS_A, MAX_MAGNIFICATION_PER_DPT, breathing_scales, check_magnification_per_dpt,
+from .breathing import (MAX_MAGNIFICATION_PER_DPT, breathing_scales, check_magnification_per_dpt,
                         registration_magnifications, window_shifts)
 from .errors import NonFiniteError, RangeError, ShapeError
 
 __all__ = ["magnify_about_centre", "register_breathing", "breathing_scales", "registration_magnifications",
            "window_shifts", "check_magnification_per_dpt", "BreathingRegistration", "MAX_MAGNIFICATION_PER_DPT"]
 
-def _sinc(t: torch.Tensor) -> torch.Tensor:
-    small = t.abs() < 1e-6
-    safe = torch.where(small, torch.ones_like(t), t) * math.pi
-    return torch.where(small, torch.ones_like(t), torch.sin(safe) / safe)
 
 
-#: Output rows (columns) per block of the banded resampling matrix.
-BLOCK = 32
+def _resample_rows(x: torch.Tensor, scale: float) -> torch.Tensor:
+    """``x`` ``(..., n, W)`` magnified by ``scale`` about its centre along ``n``: output row
+    ``p`` is input row ``round(c + (p - c) / scale)`` (nearest, clamped to the frame).
 
-
-def _resample_rows(x: torch.Tensor, scale: float, a: int) -> torch.Tensor:
-    """``x`` ``(..., n, W)`` magnified by ``scale`` about its centre along ``n`` (Lanczos,
-    reflected borders).
-
-    The ``(n, n)`` resampling matrix is banded: output rows come in blocks of :data:`BLOCK`,
-    and each block reads ``BLOCK + 2 h`` consecutive input rows (``h`` covers the Lanczos
-    taps and the drift of the sample points within a block), gathered once; a batched matrix
-    product with the blocks' weights ``(nb, BLOCK, BLOCK + 2 h)`` does the rest. The block
-    count follows the (dynamic) ``n``; the block's band is fixed by ``scale`` and ``a``.
+    Whole rows are moved, never interpolated: any interpolator (Lanczos included) lowers
+    the sensor noise near the Nyquist frequency by an amount that changes with each row's
+    fractional position, and the estimator's noise model assumes white noise; measured on
+    the breathing benchmark (``docs/BENCHMARKS.md``), Lanczos registration of noisy frames
+    raised the refined error 1.45x where whole-pixel registration gave 1.02x. The cost is
+    a residual misalignment of at most half a pixel per frame, and a repeated (or skipped)
+    row every ``1 / |1 - 1/scale|`` rows.
     """
-    n, width = x.shape[-2], x.shape[-1]
-    lead = x.shape[:-2]
-    halo = a + 1 + math.ceil(BLOCK * abs(1.0 / scale - 1.0))
-    span = BLOCK + 2 * halo
-    nb = (n + BLOCK - 1) // BLOCK
-    dt, dev = x.dtype, x.device
-    last = torch.arange(n, device=dev)[-1:]  # n - 1 as a tensor (the graph keeps it symbolic)
-    centre = last.to(dt) * 0.5
-    pos = torch.arange(nb * BLOCK, device=dev).to(dt).reshape(-1, BLOCK)  # (nb, BLOCK) output rows
-    src = centre + (pos - centre) * (1.0 / scale)  # where each output row samples the input
-    base = torch.floor(src[:, :1]) - halo  # (nb, 1) first input row each block reads
-    j = torch.arange(span, device=dev).to(dt)
-    t = src[:, :, None] - (base[:, :, None] + j[None, None, :])  # (nb, BLOCK, span) tap distances
-    w = _sinc(t) * _sinc(t * (1.0 / a)) * (t.abs() < a).to(dt)
-    w = w / w.sum(-1, keepdim=True)
-    idx = (base + j[None, :]).to(torch.int64).abs()  # (nb, span); reflect at 0 ...
-    idx = torch.where(idx > last, 2 * last - idx, idx)  # ... and at n - 1
-    idx = torch.minimum(torch.clamp(idx, min=0), last).reshape(-1)
-    g = x.reshape(-1, n, width).index_select(1, idx).reshape(-1, nb, span, width)
-    out = torch.matmul(w, g).reshape(-1, nb * BLOCK, width)[:, :n]
-    return out.reshape(*lead, n, width)
+    n = x.shape[-2]
+    dt = torch.float64 if x.dtype == torch.float64 else torch.float32
+    pos = torch.arange(n, device=x.device).to(dt)
+    last = pos[-1:]
+    centre = last * 0.5
+    idx = torch.round(centre + (pos - centre) * (1.0 / scale))
+    idx = torch.minimum(torch.clamp(idx, min=0.0), last).to(torch.int64)
+    return x.index_select(x.ndim - 2, idx)
 
 
-def magnify_about_centre(image: torch.Tensor, scale: float, a: int = LANCZOS_A) -> torch.Tensor:
-    """Magnify ``image`` ``(..., H, W)`` by ``scale`` about its centre (separable Lanczos).
+def magnify_about_centre(image: torch.Tensor, scale: float) -> torch.Tensor:
+    """Magnify ``image`` ``(..., H, W)`` by ``scale`` about its centre, whole pixels moved.
 
-    Output pixel ``p`` samples the input at ``c + (p - c) / scale``, ``c = (n - 1)/2`` per axis.
+    Output pixel ``p`` is the input pixel nearest ``c + (p - c) / scale``, ``c = (n - 1)/2``
+    per axis (clamped to the frame).
 
     Args:
-        image: ``(..., H, W)`` floating tensor, at least ``a + 1`` px per side.
+        image: ``(..., H, W)`` tensor.
         scale: magnification (1: the input itself is returned).
-        a: Lanczos half-width (taps each side).
 
     Returns:
         ``(..., H, W)``, same dtype.
@@ -123,19 +105,18 @@ def magnify_about_centre(image: torch.Tensor, scale: float, a: int = LANCZOS_A) 
         raise RangeError(f"scale {s} is implausible for focus breathing (expected within (0.5, 2))")
     if s == 1.0:
         return image
-    y = _resample_rows(image, s, a)
-    return _resample_rows(y.transpose(-1, -2), s, a).transpose(-1, -2)
+    y = _resample_rows(image, s)
+    return _resample_rows(y.transpose(-1, -2), s).transpose(-1, -2)
 
 
-def register_breathing(image_f1: torch.Tensor, image_f2: torch.Tensor, scales: Sequence[float],
-                       a: int = LANCZOS_A) -> tuple[torch.Tensor, torch.Tensor]:
+def register_breathing(image_f1: torch.Tensor, image_f2: torch.Tensor,
+                       scales: Sequence[float]) -> tuple[torch.Tensor, torch.Tensor]:
     """Bring a pair whose frames have image scales ``(s1, s2)`` to the common scale ``sqrt(s1 s2)``.
 
     Args:
         image_f1, image_f2: ``(B, 1, H, W)`` frames (about the optical centre, i.e. full
             frames or centred crops).
         scales: ``(s1, s2)``, e.g. :func:`breathing_scales`.
-        a: Lanczos half-width.
 
     Returns:
         The registered ``(image_f1, image_f2)``; the inputs themselves when ``s1 == s2``.
@@ -145,7 +126,7 @@ def register_breathing(image_f1: torch.Tensor, image_f2: torch.Tensor, scales: S
     k1, k2 = registration_magnifications(scales)
     if k1 == 1.0 and k2 == 1.0:
         return image_f1, image_f2
-    return magnify_about_centre(image_f1, k1, a), magnify_about_centre(image_f2, k2, a)
+    return magnify_about_centre(image_f1, k1), magnify_about_centre(image_f2, k2)
 
 
 class BreathingRegistration(nn.Module):
