@@ -24,10 +24,10 @@ from tdfd import Camera
 from tdfd.breathing import breathing_scales, magnify
 from tdfd.camera_file import CameraFile
 from tdfd.contract import BREATHING_KEY
-from tdfd.errors import CameraError, ModelError, ShapeError
+from tdfd.errors import ModelError, ShapeError
 from tdfd.forward import Defocus, DFDForward, IdealSensor
 from tdfd.model import DFDModel
-from tdfd.registration import BreathingRegistration
+from tdfd.registration import BreathingRegistration, register_breathing
 from tdfd.runtime import DepthRuntime
 from tdfd.textures import random_texture
 
@@ -36,7 +36,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 REF = Camera.preset("reference")
 M = 0.005  # 1/dpt: 0.5 % magnification between the reference camera's frames (1 dpt apart)
 #: ops only the registration brings into the graph
-REGISTRATION_OPS = ("Floor", "Sin", "MatMul")
+REGISTRATION_OPS = ("Round", "Gather", "Transpose")
 
 
 @pytest.fixture(scope="module")
@@ -90,22 +90,20 @@ def test_onnx_matches_torch_with_breathing(breathing_onnx):
     assert sum(c.trusted_fraction for c in report.cases) / len(report.cases) > 0.5
 
 
-def test_onnx_registration_undoes_a_known_magnification(breathing_onnx, exported_onnx):
-    """A plane pair whose frames carry 0.5 % breathing: through the breathing graph it gives
-    (nearly) the depths the plain graph gives on the same plane without breathing, which the
-    plain graph on the breathing pair does not."""
-    h, w = 256, 320
-    clean = _plane_pair(h, w, breathing=0.0, seed=3)
-    breathed = _plane_pair(h, w, breathing=(1 + M * 2.7) / (1 + M * 1.7) - 1, seed=3)
+def test_onnx_graph_registers_as_torch_does(breathing_onnx, exported_onnx):
+    """A plane pair with 0.5 % breathing: the breathing graph gives what the plain graph gives
+    on the pair registered in torch (whose undoing of a known magnification is tested in
+    test_registration.py), and differs from the plain graph on the raw pair."""
+    h, w = 384, 768  # the sides move by about 1.9 px between the frames
+    f1, f2 = _plane_pair(h, w, breathing=(1 + M * 2.7) / (1 + M * 1.7) - 1, seed=3)
+    r1, r2 = register_breathing(torch.from_numpy(f1), torch.from_numpy(f2), breathing_scales(M, REF.lens_powers_dpt))
     plain = ort.InferenceSession(str(exported_onnx[0]))
     reg = ort.InferenceSession(str(breathing_onnx[0]))
-    feed = lambda p: {"image_f1": p[0], "image_f2": p[1]}  # noqa: E731
-    q_clean = 1.0 / plain.run(["depth_analytic"], feed(clean))[0]
-    q_raw = 1.0 / plain.run(["depth_analytic"], feed(breathed))[0]
-    q_reg = 1.0 / reg.run(["depth_analytic"], feed(breathed))[0]
-    err_raw = np.median(np.abs(q_raw - q_clean) / q_clean)
-    err_reg = np.median(np.abs(q_reg - q_clean) / q_clean)
-    assert err_reg < 0.25 * err_raw, (err_reg, err_raw)
+    q_reg = reg.run(["depth_analytic"], {"image_f1": f1, "image_f2": f2})[0]
+    q_torch = plain.run(["depth_analytic"], {"image_f1": r1.numpy(), "image_f2": r2.numpy()})[0]
+    q_raw = plain.run(["depth_analytic"], {"image_f1": f1, "image_f2": f2})[0]
+    assert np.abs(q_reg - q_torch).max() <= 1e-5 * q_torch.max()
+    assert np.abs(q_reg - q_raw).max() > 1e-3 * q_raw.max()
 
 
 def _pair(h: int, w: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -119,9 +117,9 @@ def test_runtime_window_matches_the_whole_frame(breathing_onnx):
     frame; the plain crop (no breathing translation) does not."""
     rt = DepthRuntime(breathing_onnx[0], threads=1)
     assert rt.magnification_per_dpt == M and rt.frame_scales == pytest.approx(breathing_scales(M, REF.lens_powers_dpt))
-    f1, f2 = _pair(448, 576, seed=5)
+    f1, f2 = _pair(640, 896, seed=5)
     full = rt(f1, f2)
-    y0, x0 = 0, 32 * 10  # grid-aligned, far from the centre (offset ~ 160 px, 112 px)
+    y0, x0 = 0, 32 * 20  # grid-aligned, far from the centre (offsets -256 px, 320 px: shifts of 1 px)
     box = (y0, y0 + 128, x0, x0 + 256)
     win = rt(f1, f2, window=box)
     cells = (slice(y0 // 32, y0 // 32 + win.depth.shape[0]), slice(x0 // 32, x0 // 32 + win.depth.shape[1]))
@@ -130,10 +128,10 @@ def test_runtime_window_matches_the_whole_frame(breathing_onnx):
     err_win = np.median(np.abs(1.0 / win.depth_analytic - ref) / ref)
     err_plain = np.median(np.abs(plain - ref) / ref)
     assert win.image_size == (128, 256) and win.depth.shape == (3, 7)
-    assert err_win < 0.3 * err_plain and err_win < 0.01, (err_win, err_plain)
+    assert err_win < 0.2 * err_plain and err_win < 1e-3, (err_win, err_plain)
     assert np.median(np.abs(win.depth - full.depth[cells]) / full.depth[cells]) < 0.01
     # the centred window needs no translation: exactly the plain crop
-    c = (160, 288, 128, 448)
+    c = (256, 384, 320, 576)
     a, b = rt.window_pair(f1[None, None], f2[None, None], c)
     assert np.array_equal(a[0, 0], f1[c[0]:c[1], c[2]:c[3]]) and np.array_equal(b[0, 0], f2[c[0]:c[1], c[2]:c[3]])
 
@@ -163,7 +161,6 @@ def test_export_cli_refuses_a_bad_breathing_or_a_breathing_analytic_export(tmp_p
     assert export_main(["--analytic", "--camera", str(cam), "--out", str(tmp_path / "a.onnx")]) == 1
     assert "no breathing registration" in capsys.readouterr().err
     assert not (tmp_path / "a.onnx").exists()
-    assert isinstance(CameraError("x"), Exception)
 
 
 def test_registration_module_alone_exports_with_dynamic_shapes(tmp_path):
@@ -179,7 +176,7 @@ def test_registration_module_alone_exports_with_dynamic_shapes(tmp_path):
 
     x = torch.rand(2, 1, 70, 90)
     dims = {0: torch.export.Dim("n", min=1), 2: torch.export.Dim("h", min=16), 3: torch.export.Dim("w", min=16)}
-    prog = torch.onnx.export(Pair(), (x, x), dynamo=True, opset_version=18, input_names=["a", "b"],
+    prog = torch.onnx.export(Pair(), (x, x.flip(-1)), dynamo=True, opset_version=18, input_names=["a", "b"],
                              dynamic_shapes=(dims, dims), external_data=False, report=False, verbose=False)
     prog.save(str(tmp_path / "r.onnx"))
     sess = ort.InferenceSession(str(tmp_path / "r.onnx"))
