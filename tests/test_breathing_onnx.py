@@ -176,7 +176,7 @@ def test_registration_module_alone_exports_with_dynamic_shapes(tmp_path):
 
     x = torch.rand(2, 1, 70, 90)
     dims = {0: torch.export.Dim("n", min=1), 2: torch.export.Dim("h", min=16), 3: torch.export.Dim("w", min=16)}
-    prog = torch.onnx.export(Pair(), (x, x.flip(-1)), dynamo=True, opset_version=18, input_names=["a", "b"],
+    prog = torch.onnx.export(Pair().eval(), (x, x.flip(-1)), dynamo=True, opset_version=18, input_names=["a", "b"],
                              dynamic_shapes=(dims, dims), external_data=False, report=False, verbose=False)
     prog.save(str(tmp_path / "r.onnx"))
     sess = ort.InferenceSession(str(tmp_path / "r.onnx"))
