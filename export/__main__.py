@@ -10,10 +10,13 @@ ONNX Runtime versus torch on rendered pairs). Exit status 1 with a one-line erro
 anything fails; ``--analytic`` exports the bare analytic layer instead (for development).
 
 ``--camera PRESET|FILE.json`` names the camera (a preset or a camera JSON file,
-:func:`tdfd.camera_file.resolve_camera`): the analytic layer's camera with ``--analytic``
+:func:`tdfd.camera_file.resolve_camera_file`): the analytic layer's camera with ``--analytic``
 (default ``reference``); with ``--weights`` a check that the trained model was built for
-that camera (a model is trained for one camera: ``python -m training --set
-model.camera=FILE.json``), refused when it was not.
+that camera's optics (a model is trained for one camera: ``python -m training --set
+model.camera=FILE.json``), refused when it was not. The file's focus breathing
+(``magnification_per_dpt``) goes into the exported model: both frames are registered to a
+common scale before the estimator (:mod:`tdfd.registration`), and the ``tdfd.breathing``
+metadata records it.
 """
 
 from __future__ import annotations
@@ -68,12 +71,18 @@ def main(argv: list[str] | None = None) -> int:
     from .verify import verify_onnx
 
     try:
-        from tdfd.camera_file import resolve_camera
+        from tdfd.camera_file import resolve_camera_file
 
-        camera = resolve_camera(args.camera) if args.camera is not None else None
+        camera_file = resolve_camera_file(args.camera) if args.camera is not None else None
+        camera = camera_file.camera if camera_file is not None else None
         if args.analytic:
             from .standin import analytic_model
 
+            if camera_file is not None and camera_file.magnification_per_dpt:
+                from tdfd.errors import CameraError
+
+                raise CameraError(f"{args.camera}: --analytic exports no breathing registration; export a "
+                                  "trained model with --weights for a camera with magnification_per_dpt")
             model = analytic_model(camera)
         else:
             from tdfd.errors import ModelError
@@ -84,6 +93,8 @@ def main(argv: list[str] | None = None) -> int:
                 raise ModelError(f"{args.weights} was trained for camera {model.camera.to_dict()}, not for "
                                  f"{args.camera} ({camera.to_dict()}); train one for it with "
                                  f"python -m training --set model.camera={args.camera}")
+            if camera_file is not None:
+                model.set_breathing(camera_file.magnification_per_dpt)
         model.eval()
         t0 = time.perf_counter()
         path = export_model(model, args.out, opset=args.opset, optimize=not args.no_optimize)

@@ -38,7 +38,7 @@ import torch
 from torch import nn
 
 import tdfd
-from tdfd.contract import (CAMERA_KEY, COVERAGE_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET, MODEL_KEY,
+from tdfd.contract import (BREATHING_KEY, CAMERA_KEY, COVERAGE_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET, MODEL_KEY,
                            OUTPUT_NAMES, VERSION_KEY)
 from tdfd.coverage import camera_coverage
 from tdfd.errors import ModelError
@@ -66,7 +66,9 @@ def onnx_metadata(model: nn.Module) -> dict[str, str]:
     literal such as ``"0.1.0"``), ``tdfd.coverage`` which cameras the model covers (both
     frames' blur range in px over the camera's working range, :mod:`tdfd.coverage`). A model
     with a ``config()`` method (``DFDModel``) also gets ``tdfd.model``, its full description
-    (informational).
+    (informational). A model with a breathing registration (``model.registration``, a
+    :class:`tdfd.registration.BreathingRegistration`) gets ``tdfd.breathing``:
+    ``{"magnification_per_dpt", "frame_scales"}`` (:data:`tdfd.contract.BREATHING_KEY`).
     """
     _check_model(model)
     meta = {
@@ -75,6 +77,10 @@ def onnx_metadata(model: nn.Module) -> dict[str, str]:
         VERSION_KEY: json.dumps(tdfd.__version__),
         COVERAGE_KEY: json.dumps(camera_coverage(model.camera)),
     }
+    registration = getattr(model, "registration", None)
+    if registration is not None:
+        meta[BREATHING_KEY] = json.dumps({"magnification_per_dpt": float(registration.magnification_per_dpt),
+                                          "frame_scales": [float(v) for v in registration.scales]})
     config = getattr(model, "config", None)
     if callable(config):
         try:

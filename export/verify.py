@@ -31,13 +31,14 @@ import onnx
 import torch
 from torch import nn
 
+from tdfd.breathing import breathing_scales
 from tdfd.camera import Camera
-from tdfd.errors import ModelError
+from tdfd.errors import InputError, ModelError
 from tdfd.forward import Defocus, DFDForward, IdealSensor, PlanePairs
 from tdfd.grid import grid_shape
 from tdfd.sensor import SensorModel
 
-from tdfd.contract import CAMERA_KEY, COVERAGE_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET, OUTPUT_NAMES
+from tdfd.contract import BREATHING_KEY, CAMERA_KEY, COVERAGE_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET, OUTPUT_NAMES
 from tdfd.coverage import camera_coverage, check_coverage
 
 from .onnx_export import _export_mode
@@ -138,7 +139,22 @@ def check_contract(proto: onnx.ModelProto, model: nn.Module | None = None) -> di
         except json.JSONDecodeError as exc:
             raise ModelError(f"metadata {COVERAGE_KEY!r} is not JSON: {exc}") from exc
         check_coverage(camera, parsed[COVERAGE_KEY], camera, "the file")  # well formed, covers its own camera
+    if BREATHING_KEY in meta:  # optional: the focus breathing the graph registers
+        try:
+            parsed[BREATHING_KEY] = breathing = json.loads(meta[BREATHING_KEY])
+            m = breathing["magnification_per_dpt"]
+            scales = breathing_scales(m, camera.lens_powers_dpt)
+        except (json.JSONDecodeError, KeyError, TypeError, InputError) as exc:
+            raise ModelError(f"metadata {BREATHING_KEY!r} is invalid: {exc}") from exc
+        if [float(v) for v in breathing.get("frame_scales", ())] != list(scales):
+            raise ModelError(f"metadata {BREATHING_KEY!r} frame_scales {breathing.get('frame_scales')} are not "
+                             f"1 + m P at the camera's powers ({list(scales)})")
     if model is not None:
+        registration = getattr(model, "registration", None)
+        m_model = float(registration.magnification_per_dpt) if registration is not None else 0.0
+        m_file = float(parsed[BREATHING_KEY]["magnification_per_dpt"]) if BREATHING_KEY in parsed else 0.0  # type: ignore[index]
+        if m_file != m_model:
+            raise ModelError(f"metadata breathing {m_file} differs from the model's magnification_per_dpt {m_model}")
         if COVERAGE_KEY in parsed and parsed[COVERAGE_KEY] != camera_coverage(model.camera):
             raise ModelError(f"metadata coverage {parsed[COVERAGE_KEY]} differs from the model's "
                              f"{camera_coverage(model.camera)}")

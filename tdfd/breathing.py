@@ -9,6 +9,16 @@ Resampling is separable windowed-sinc (Lanczos) interpolation, written as two sm
 matrices, ``out = R_y x R_x^T``: no interpolation blur to speak of, unlike bilinear
 resampling whose position-dependent low-pass would bias defocus measurements.
 
+Registering a DFD pair (the model does it before its estimator, :mod:`tdfd.registration`,
+in torch and in the ONNX graph): frames at powers ``P1``, ``P2`` have scales ``(s1, s2)``
+(:func:`breathing_scales`) and are brought to ``sqrt(s1 s2)`` by magnifying them by
+``(k1, k2) = (sqrt(s2/s1), sqrt(s1/s2))`` (:func:`registration_magnifications`) about the
+centre of the frames given. A crop whose centre is not the optical centre needs a
+translation per frame on top (:func:`window_shifts`), applied when the crop is cut
+(rounded to whole pixels, :func:`crop_offset`; :class:`tdfd.runtime.DepthRuntime` does it for
+``window=``). This
+module needs numpy only (the device runtime imports it).
+
 Example:
     >>> import numpy as np
     >>> x = np.random.default_rng(0).random((32, 32))
@@ -21,11 +31,16 @@ Example:
 
 from __future__ import annotations
 
+import math
+from typing import Sequence
+
 import numpy as np
 
-from .errors import InputError, ShapeError
+from .errors import InputError, NonFiniteError, RangeError, ShapeError
 
-__all__ = ["lanczos_matrix", "magnify", "register_to_power", "LANCZOS_A"]
+__all__ = ["lanczos_matrix", "magnify", "register_to_power", "crop_offset", "check_magnification_per_dpt",
+           "breathing_scales", "registration_magnifications", "window_shifts", "LANCZOS_A",
+           "MAX_MAGNIFICATION_PER_DPT"]
 
 #: Lanczos window half-width (taps each side).
 LANCZOS_A = 6
@@ -76,3 +91,93 @@ def register_to_power(image: np.ndarray, power_dpt: float, reference_power_dpt: 
     """Undo breathing: resample a frame taken at ``power_dpt`` to the scale at ``reference_power_dpt``."""
     s = (1.0 + magnification_per_dpt * reference_power_dpt) / (1.0 + magnification_per_dpt * power_dpt)
     return magnify(image, s)
+
+
+#: Largest plausible ``|magnification_per_dpt|`` (1/dpt); the camera file's limit as well.
+MAX_MAGNIFICATION_PER_DPT = 0.1
+
+
+def check_magnification_per_dpt(m: float, name: str = "magnification_per_dpt") -> float:
+    """``m`` as a float after checking it is finite and plausible (``|m| < 0.1`` per dioptre).
+
+    Raises:
+        NonFiniteError: ``m`` is NaN or infinite (or not a number).
+        RangeError: ``|m| >= 0.1``.
+    """
+    try:
+        v = float(m)
+    except (TypeError, ValueError):
+        raise NonFiniteError(f"{name} must be a finite number, got {m!r}") from None
+    if isinstance(m, bool) or not math.isfinite(v):
+        raise NonFiniteError(f"{name} must be a finite number, got {m!r}")
+    if abs(v) >= MAX_MAGNIFICATION_PER_DPT:
+        raise RangeError(f"{name} {v} is implausible (|m| < {MAX_MAGNIFICATION_PER_DPT} per dioptre expected)")
+    return v
+
+
+def breathing_scales(magnification_per_dpt: float, lens_powers_dpt: Sequence[float]) -> tuple[float, float]:
+    """Image scales ``(s1, s2) = (1 + m P1, 1 + m P2)`` of the two frames.
+
+    Raises:
+        NonFiniteError, RangeError: a bad ``m`` or power, or a scale outside (0.5, 2).
+    """
+    m = check_magnification_per_dpt(magnification_per_dpt)
+    try:
+        p1, p2 = (float(p) for p in lens_powers_dpt)
+    except (TypeError, ValueError):
+        raise NonFiniteError(f"lens_powers_dpt must be two numbers, got {lens_powers_dpt!r}") from None
+    if not (math.isfinite(p1) and math.isfinite(p2)):
+        raise NonFiniteError(f"lens_powers_dpt must be finite, got {lens_powers_dpt!r}")
+    s = (1.0 + m * p1, 1.0 + m * p2)
+    if not all(0.5 < v < 2.0 for v in s):
+        raise RangeError(f"breathing scales {s} (m {m} at powers {p1}, {p2} dpt) are implausible")
+    return s
+
+
+def registration_magnifications(scales: Sequence[float]) -> tuple[float, float]:
+    """Magnifications ``(k1, k2) = (sqrt(s2/s1), sqrt(s1/s2))`` that bring frames at scales
+    ``(s1, s2)`` to their common scale ``sqrt(s1 s2)``."""
+    s1, s2 = (float(v) for v in scales)
+    return math.sqrt(s2 / s1), math.sqrt(s1 / s2)
+
+
+def window_shifts(centre_offset_px: float, magnifications: Sequence[float]) -> tuple[float, float]:
+    """Per-frame translation (px) of a crop whose centre lies ``centre_offset_px`` from the
+    optical centre (``c_crop - c_opt`` along one axis), so that registering the crop about its
+    own centre equals registering the whole frame about the optical centre and cropping.
+
+    The crop of frame ``i`` is cut at its nominal origin plus ``-centre_offset_px (1 - 1/k_i)``.
+
+    Example:
+        >>> [round(v, 6) for v in window_shifts(100.0, (1.01, 1 / 1.01))]
+        [-0.990099, 1.0]
+    """
+    d = float(centre_offset_px)
+    return tuple(-d * (1.0 - 1.0 / float(k)) for k in magnifications)  # type: ignore[return-value]
+
+
+def crop_offset(image: np.ndarray, window: tuple[int, int, int, int], shift: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """The crop ``window = (y0, y1, x0, x1)`` of ``image`` ``(..., H, W)`` moved by whole pixels
+    ``shift = (dy, dx)``: output pixel ``(u, v)`` is image pixel ``(y0 + u + dy, x0 + v + dx)``,
+    the nearest border pixel where that lies outside the image (no interpolation, so the
+    sensor noise stays white).
+
+    Raises:
+        ShapeError: the window is empty or not inside the image.
+        InputError: a shift that is not a whole number of pixels.
+    """
+    x = np.asarray(image)
+    if x.ndim < 2:
+        raise ShapeError(f"image must be at least 2-D, got {x.shape}")
+    n_y, n_x = x.shape[-2:]
+    y0, y1, x0, x1 = (int(v) for v in window)
+    if not (0 <= y0 < y1 <= n_y and 0 <= x0 < x1 <= n_x):
+        raise ShapeError(f"window {tuple(window)} is empty or not inside the {n_y}x{n_x} image")
+    if any(isinstance(v, bool) or not float(v).is_integer() for v in shift):
+        raise InputError(f"shift must be whole pixels, got {shift}")
+    dy, dx = (int(v) for v in shift)
+    if dy == 0 and dx == 0:
+        return x[..., y0:y1, x0:x1]
+    rows = np.clip(np.arange(y0, y1) + dy, 0, n_y - 1)
+    cols = np.clip(np.arange(x0, x1) + dx, 0, n_x - 1)
+    return x[..., rows[:, None], cols[None, :]]

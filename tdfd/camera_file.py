@@ -15,7 +15,10 @@ A camera file holds the ``tdfd.camera`` object of CONTRACT.md section 2 (SI unit
 * ``magnification_per_dpt`` (1/dpt): focus breathing. The image scale at ECVFL power ``P``
   is ``1 + m P`` (relative), so two frames at ``P1`` and ``P2`` differ in magnification by
   about ``m (P1 - P2)``; positive when the image grows with power. Written by
-  ``tdfd calibrate``; 0 when absent.
+  ``tdfd calibrate``; 0 when absent. The model registers it before its estimator
+  (:class:`tdfd.registration.BreathingRegistration`) once it knows it:
+  ``python -m export --weights ... --camera FILE`` stores it in the ONNX graph and in the
+  ``tdfd.breathing`` metadata.
 * ``ecvfl_offset_dpt`` (dpt): only in files describing a *simulated* true camera
   (``tdfd capture --sim``): the lens's real power is the commanded one plus this offset.
   A calibrated camera absorbs the offset into ``fixed_focal_length_m`` instead.
@@ -46,7 +49,7 @@ from .errors import CameraError
 logger = logging.getLogger(__name__)
 _WARNED: set = set()  # camera files already warned about (resolve_camera), once per process
 
-__all__ = ["CameraFile", "load_camera_file", "resolve_camera", "EXTRA_KEYS"]
+__all__ = ["CameraFile", "load_camera_file", "resolve_camera", "resolve_camera_file", "EXTRA_KEYS"]
 
 #: keys a camera file may add to the ``tdfd.camera`` object.
 EXTRA_KEYS = ("magnification_per_dpt", "ecvfl_offset_dpt", "calibration")
@@ -134,14 +137,13 @@ def load_camera_file(path: str | os.PathLike) -> CameraFile:
     return CameraFile.from_dict(data, str(p))
 
 
-def resolve_camera(spec: str | os.PathLike) -> Camera:
-    """A camera from a preset name (``reference``, ``paper``) or a camera JSON file.
+def resolve_camera_file(spec: str | os.PathLike) -> CameraFile:
+    """A :class:`CameraFile` from a preset name (``reference``, ``paper``: no breathing) or a
+    camera JSON file.
 
-    What ``python -m training --set model.camera=...`` and ``python -m export --camera ...``
-    accept. A name that is a preset is the preset; anything else is read as a file
-    (:func:`load_camera_file`). Keys the model does not use yet are logged:
-    ``magnification_per_dpt`` (the model does not register breathing) and
-    ``ecvfl_offset_dpt`` (a simulated true camera's offset, not a calibrated camera).
+    What ``python -m export --camera ...`` accepts (the file's ``magnification_per_dpt`` goes
+    into the exported model). An ``ecvfl_offset_dpt`` is logged as ignored (it describes a
+    simulated true camera, not a calibrated one).
 
     Raises:
         CameraError: neither a preset nor a readable, valid camera file (the message names
@@ -149,19 +151,27 @@ def resolve_camera(spec: str | os.PathLike) -> Camera:
     """
     text = os.fspath(spec)
     if text in PRESETS:
-        return Camera.preset(text)
+        return CameraFile(Camera.preset(text))
     path = Path(text)
     if path.suffix.lower() != ".json" and not path.exists():
         raise CameraError(f"camera {text!r} is neither a preset ({sorted(PRESETS)}) nor a camera JSON file")
     cf = load_camera_file(path)
-    key = (str(path.resolve()), cf.magnification_per_dpt, cf.ecvfl_offset_dpt)
-    if key in _WARNED:
-        return cf.camera
-    _WARNED.add(key)
-    if cf.magnification_per_dpt:
-        logger.warning("%s: magnification_per_dpt %g is not used by the model (no breathing registration in it)",
-                       path, cf.magnification_per_dpt)
-    if cf.ecvfl_offset_dpt:
+    key = (str(path.resolve()), cf.ecvfl_offset_dpt)
+    if cf.ecvfl_offset_dpt and key not in _WARNED:
+        _WARNED.add(key)
         logger.warning("%s: ecvfl_offset_dpt %g is ignored: it describes a simulated true camera, not a calibrated one",
                        path, cf.ecvfl_offset_dpt)
-    return cf.camera
+    return cf
+
+
+def resolve_camera(spec: str | os.PathLike) -> Camera:
+    """The :class:`~tdfd.camera.Camera` of :func:`resolve_camera_file` (the optics alone).
+
+    What ``python -m training --set model.camera=...`` accepts: the weights depend on the
+    optics only; the camera's focus breathing is registered before the estimator, so it
+    reaches the model at export (``python -m export --camera FILE``), not in training.
+
+    Raises:
+        CameraError: as :func:`resolve_camera_file`.
+    """
+    return resolve_camera_file(spec).camera

@@ -21,6 +21,7 @@ __all__ = [
     "VERSION_KEY",
     "MODEL_KEY",
     "COVERAGE_KEY",
+    "BREATHING_KEY",
     "METADATA_KEYS",
     "MIN_OPSET",
     "DEFAULT_MODEL_ENV",
@@ -43,6 +44,12 @@ MODEL_KEY = "tdfd.model"
 #: Optional ``metadata_props`` key beyond the contract's three: which cameras the model covers
 #: (:mod:`tdfd.coverage`; checked when ``DepthRuntime`` is given a camera).
 COVERAGE_KEY = "tdfd.coverage"
+#: Optional ``metadata_props`` key: the focus breathing the graph registers,
+#: ``{"magnification_per_dpt": m, "frame_scales": [s1, s2]}`` (``s = 1 + m P`` at the two ECVFL
+#: powers). The graph brings both frames to the scale ``sqrt(s1 s2)`` about the centre of its
+#: inputs; a caller cutting an off-centre crop shifts it (:meth:`tdfd.runtime.DepthRuntime.__call__`,
+#: ``window=``). Absent: no registration (``m = 0``).
+BREATHING_KEY = "tdfd.breathing"
 #: The keys every exported file must carry, each value a JSON string.
 METADATA_KEYS: tuple[str, str, str] = (CAMERA_KEY, GRID_KEY, VERSION_KEY)
 #: Lowest ONNX opset the contract allows.

@@ -13,6 +13,17 @@ Inputs are validated before they reach the session, with typed errors
 ``white_level=4095`` for 12-bit data stored in 16-bit words). Arrays may be ``(H, W)``,
 ``(1, H, W)`` or ``(N, 1, H, W)``; results keep that layout.
 
+Focus breathing: a model exported for a camera that breathes (``tdfd.breathing`` metadata,
+:data:`tdfd.contract.BREATHING_KEY`) registers the two frames about the centre of the frames
+it is given, which must then be the optical centre. For a region of interest, pass the whole
+frames and ``window=(y0, y1, x0, x1)``: the runtime cuts the crop of each frame moved by the
+translation that magnification about the optical centre implies there
+(:func:`tdfd.breathing.window_shifts`, rounded to whole pixels as the graph moves whole
+pixels, :func:`tdfd.breathing.crop_offset`),
+so the window's depths match those of the whole frame. ``optical_centre=(cy, cx)`` names the
+optical centre in the given frames' pixels when it is not their centre (a read-out window off
+the sensor's centre); default the frames' centre.
+
 Full-resolution resampling (``full_resolution=True``) interpolates the tile grid
 bilinearly with each tile's value placed at its centre, pixel
 ``(i * stride + (tile - 1) / 2, j * stride + (tile - 1) / 2)``; pixels outside the outermost
@@ -40,12 +51,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from .breathing import crop_offset, registration_magnifications, window_shifts
 from .camera import Camera, in_focus_power_dpt
-from .contract import (CAMERA_KEY, COVERAGE_KEY, DEFAULT_MODEL_ENV, DEFAULT_MODEL_RELPATH, GRID_KEY, INPUT_NAMES, METADATA_KEYS,
+from .contract import (BREATHING_KEY, CAMERA_KEY, COVERAGE_KEY, DEFAULT_MODEL_ENV, DEFAULT_MODEL_RELPATH, GRID_KEY, INPUT_NAMES, METADATA_KEYS,
                        OUTPUT_NAMES, PACKAGED_MODEL_RELPATH, VERSION_KEY)
-from .camera_file import resolve_camera
+from .camera_file import resolve_camera_file
 from .coverage import check_coverage
-from .errors import DTypeError, InputError, ModelError, ShapeError
+from .errors import DTypeError, InputError, ModelError, NonFiniteError, ShapeError
 from .frames import raw_to_linear
 from .pair_check import pair_problem
 
@@ -345,6 +357,9 @@ class DepthRuntime:
         tile, stride: the tile grid (``tdfd.grid``).
         version: the tdfd version that exported the file.
         metadata: all ``metadata_props``, JSON-decoded where possible.
+        magnification_per_dpt: the focus breathing the graph registers (``tdfd.breathing``;
+            0 when the file states none).
+        frame_scales: the two frames' image scales ``(s1, s2)`` it assumes (``(1, 1)``: none).
     """
 
     def __init__(self, model_path: str | os.PathLike | None = None, threads: int = 2,
@@ -381,16 +396,36 @@ class DepthRuntime:
         if self.tile < 1 or not 1 <= self.stride <= self.tile:
             raise ModelError(f"{path}: invalid tile grid tile={self.tile}, stride={self.stride}")
         self.version = str(self.metadata[VERSION_KEY])
+        self.magnification_per_dpt, self.frame_scales = self._breathing()
         self.model_camera = self.camera
         if camera is not None:
             self.camera = self._covered_camera(camera)
+
+    def _breathing(self) -> tuple[float, tuple[float, float]]:
+        """``(magnification_per_dpt, frame_scales)`` from the ``tdfd.breathing`` metadata."""
+        info = self.metadata.get(BREATHING_KEY)
+        if info is None:
+            return 0.0, (1.0, 1.0)
+        try:
+            m = float(info["magnification_per_dpt"])
+            s1, s2 = (float(v) for v in info["frame_scales"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelError(f"{self.path}: invalid {BREATHING_KEY!r} metadata {info!r}") from exc
+        if not all(math.isfinite(v) and 0.5 < v < 2.0 for v in (s1, s2)) or not math.isfinite(m):
+            raise ModelError(f"{self.path}: implausible {BREATHING_KEY!r} metadata {info!r}")
+        return m, (s1, s2)
 
     def _covered_camera(self, camera: Camera | str | os.PathLike) -> Camera:
         """The user's camera after the load-time coverage check (:mod:`tdfd.coverage`)."""
         label = None
         if not isinstance(camera, Camera):
             label = os.fspath(camera)
-            camera = resolve_camera(label)
+            cf = resolve_camera_file(label)
+            camera = cf.camera
+            if not math.isclose(cf.magnification_per_dpt, self.magnification_per_dpt, rel_tol=0.05, abs_tol=1e-5):
+                logger.warning("%s: the camera's magnification_per_dpt %g differs from the %g the model registers; "
+                               "export the model for it: python -m export --weights MODEL --camera %s", label,
+                               cf.magnification_per_dpt, self.magnification_per_dpt, label)
         if COVERAGE_KEY not in self.metadata:
             raise ModelError(f"{self.path} states no {COVERAGE_KEY!r} (which cameras it covers), so it cannot be "
                              f"checked for camera {camera.name!r}; re-export it with `python -m export`")
@@ -444,8 +479,38 @@ class DepthRuntime:
             raise ModelError(f"onnxruntime failed running {self.path.name}: {first}") from exc
         return tuple(out)  # type: ignore[return-value]
 
+    def window_pair(self, image_f1: np.ndarray, image_f2: np.ndarray, window: tuple[int, int, int, int],
+                    optical_centre: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The crops ``window = (y0, y1, x0, x1)`` of a prepared pair (float32 ``(N, 1, H, W)``),
+        frame by frame moved by the breathing translation at the window's position
+        (:func:`tdfd.breathing.window_shifts`), so that the graph's registration about the
+        crop's centre equals registration of the whole frames about ``optical_centre``
+        (default: the frames' centre). Without breathing: the plain crops.
+
+        Raises:
+            ShapeError: the window is not inside the frames or smaller than one tile.
+            NonFiniteError: a non-finite ``optical_centre``.
+        """
+        H, W = image_f1.shape[-2:]
+        try:
+            y0, y1, x0, x1 = (int(v) for v in window)
+        except (TypeError, ValueError):
+            raise ShapeError(f"window must be (y0, y1, x0, x1) pixels, got {window!r}") from None
+        if not (0 <= y0 < y1 <= H and 0 <= x0 < x1 <= W):
+            raise ShapeError(f"window {tuple(window)} is empty or not inside the {H}x{W} frames")
+        self.grid_shape(y1 - y0, x1 - x0)
+        cy, cx = ((H - 1) / 2.0, (W - 1) / 2.0) if optical_centre is None else (float(v) for v in optical_centre)
+        if not (math.isfinite(cy) and math.isfinite(cx)):
+            raise NonFiniteError(f"optical_centre must be finite, got {optical_centre!r}")
+        ks = registration_magnifications(self.frame_scales)
+        sy = window_shifts((y0 + (y1 - y0 - 1) / 2.0) - cy, ks)
+        sx = window_shifts((x0 + (x1 - x0 - 1) / 2.0) - cx, ks)
+        out = [crop_offset(im, (y0, y1, x0, x1), (round(dy), round(dx))) for im, dy, dx in zip((image_f1, image_f2), sy, sx)]
+        return tuple(np.ascontiguousarray(o, dtype=np.float32) for o in out)  # type: ignore
+
     def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray, white_level: float | None = None,
-                 full_resolution: bool = False) -> DepthResult:
+                 full_resolution: bool = False, window: tuple[int, int, int, int] | None = None,
+                 optical_centre: tuple[float, float] | None = None) -> DepthResult:
         """Depth, confidence and analytic depth for a DFD pair.
 
         Args:
@@ -455,6 +520,12 @@ class DepthRuntime:
             white_level: raw value of full scale; integer frames default to the dtype's
                 maximum, float frames to 1.
             full_resolution: resample the maps to ``(H, W)`` (see the module notes).
+            window: ``(y0, y1, x0, x1)``: estimate the crop ``[y0:y1, x0:x1]`` of the frames
+                only (results on the crop's grid, ``image_size`` the crop's), cut so that a
+                breathing model's registration matches that of the whole frames
+                (:meth:`window_pair`).
+            optical_centre: ``(cy, cx)`` in the given frames' pixels (default their centre);
+                with a breathing model, the frames (or the window) are moved accordingly.
 
         Returns:
             A :class:`DepthResult` in the input's layout.
@@ -468,6 +539,8 @@ class DepthRuntime:
             ModelError: onnxruntime failed.
         """
         a, b, shape = self.prepare(image_f1, image_f2, white_level)
+        if window is not None or optical_centre is not None:
+            a, b = self.window_pair(a, b, window or (0, a.shape[-2], 0, a.shape[-1]), optical_centre)
         depth, conf, depth_a = self.run(a, b)
         conf, problems = check_pairs(a, b, conf)
         H, W = a.shape[-2:]

@@ -49,6 +49,7 @@ from ..camera import Camera
 from ..dfd.fourier_ratio import DFDResult, FourierRatioDFD, validate_pair
 from ..errors import InputError, ModelError
 from ..optics.thin_lens import camera_sigmas
+from ..registration import BreathingRegistration
 from .refine import RefineNet
 
 __all__ = ["DFDModel", "RefinedResult", "tile_features", "num_features", "context_sizes", "pool_measurements",
@@ -213,6 +214,10 @@ class DFDModel(nn.Module):
         context: side (odd, in tiles) of the neighbourhood whose averaged measurements give
             a second, pooled analytic fit as extra features (1: none), or a sequence of such
             sides, one pooled fit each (``[3, 7]``: a local and a wider neighbourhood).
+        magnification_per_dpt: the camera's focus breathing ``m`` (1/dpt, the camera file's
+            key): both frames are registered to a common image scale before the analytic
+            stage (:class:`~tdfd.registration.BreathingRegistration`, about the centre of the
+            frames given). 0 (default): no registration, no extra operation.
         **refine_config: keyword arguments of :class:`~tdfd.model.refine.RefineNet`
             (``hidden``, ``blocks``, ``kernel_size``).
 
@@ -224,7 +229,7 @@ class DFDModel(nn.Module):
 
     def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, *, analytic: dict[str, Any] | None = None,
                  confidence_scale: float = 0.01, correction_scale: float = 1.0, context: int | Sequence[int] = 1,
-                 **refine_config: Any) -> None:
+                 magnification_per_dpt: float = 0.0, **refine_config: Any) -> None:
         super().__init__()
         analytic = dict(analytic or {})
         for key in ("tile", "stride", "validate", "camera"):
@@ -242,6 +247,8 @@ class DFDModel(nn.Module):
         self.analytic_config = analytic
         self.confidence_scale, self.correction_scale = float(confidence_scale), float(correction_scale)
         self.analytic = FourierRatioDFD(camera, tile=tile, stride=stride, validate=False, **analytic)
+        #: focus-breathing registration before the analytic stage (no parameters, no state)
+        self.registration = BreathingRegistration(magnification_per_dpt, camera.lens_powers_dpt)
         try:
             self.refine = RefineNet(num_features(self.analytic.num_rings, self.contexts), **refine_config)
         except TypeError as exc:
@@ -256,6 +263,23 @@ class DFDModel(nn.Module):
     def context(self) -> int | list[int]:
         """The ``context`` option as saved: one side as an int (1: none), several as a list."""
         return list(self.contexts) if len(self.contexts) > 1 else (self.contexts or (1,))[0]
+
+    @property
+    def magnification_per_dpt(self) -> float:
+        """The focus breathing the model registers (1/dpt; 0: none)."""
+        return self.registration.magnification_per_dpt
+
+    def set_breathing(self, magnification_per_dpt: float) -> "DFDModel":
+        """Register the camera's focus breathing ``m`` (1/dpt) from now on; returns ``self``.
+
+        The weights do not depend on it (the CNN sees registered frames), so a trained model
+        serves a camera that breathes once it knows ``m`` (``python -m export --camera FILE``).
+
+        Raises:
+            NonFiniteError, RangeError: ``m`` is not finite or ``|m| >= 0.1``.
+        """
+        self.registration = BreathingRegistration(magnification_per_dpt, self.camera.lens_powers_dpt)
+        return self
 
     def set_validate(self, flag: bool) -> "DFDModel":
         """Turn input validation on or off (off for export); returns ``self``."""
@@ -274,6 +298,7 @@ class DFDModel(nn.Module):
                 "camera_name": self.camera.name, "tile": self.tile, "stride": self.stride,
                 "analytic": self.analytic_config, "confidence_scale": self.confidence_scale,
                 "correction_scale": self.correction_scale, "context": self.context,
+                "magnification_per_dpt": self.magnification_per_dpt,
                 "refine": {k: v for k, v in self.refine.config().items() if k not in ("in_channels", "out_channels")}}
 
     # ------------------------------------------------------------------ compute
@@ -285,6 +310,10 @@ class DFDModel(nn.Module):
         """
         if self.validate and not is_exporting():
             validate_pair(image_f1, image_f2, self.tile)
+        return self._analytic_features(*self.registration(image_f1, image_f2))
+
+    def _analytic_features(self, image_f1: torch.Tensor, image_f2: torch.Tensor) -> tuple[torch.Tensor, DFDResult]:
+        """:meth:`features` on frames already registered."""
         meas = self.analytic.measure(image_f1, image_f2)
         b = image_f1.shape[0]
         r, *pooled = self._fit_stacked(self.analytic, [meas] + [pool_measurements(meas, c) for c in self.contexts],
@@ -361,7 +390,7 @@ class DFDModel(nn.Module):
         near, far = self.camera.depth_range_m
         depth = torch.full((1, 1, size, size), 0.5 * (near + far), dtype=torch.float64)
         i1, i2 = render_pair(self.camera, sharp, depth)
-        feats = self.features(i1.float(), i2.float())[0].double()
+        feats = self._analytic_features(i1.float(), i2.float())[0].double()  # no breathing in the probe
         return [round(float(v), 5) for v in feats.mean((0, 2, 3))]
 
     def check_analytic(self, expected: list[float], rtol: float = 1e-3, atol: float = 1e-3) -> bool:
@@ -418,7 +447,8 @@ class DFDModel(nn.Module):
             camera = Camera.from_dict(cfg["camera"], name=cfg.get("camera_name", "custom"))
             return cls(camera, tile=cfg["tile"], stride=cfg["stride"], analytic=cfg.get("analytic") or {},
                        confidence_scale=cfg["confidence_scale"], correction_scale=cfg["correction_scale"],
-                       context=cfg.get("context", 1), **cfg["refine"])
+                       context=cfg.get("context", 1), magnification_per_dpt=cfg.get("magnification_per_dpt", 0.0),
+                       **cfg["refine"])
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelError(f"invalid model description: {exc!r}") from exc
 
