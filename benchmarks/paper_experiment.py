@@ -212,10 +212,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "reference.onnx")
     ap.add_argument("--optics", choices=["gaussian", "pillbox"], default="gaussian",
                     help="simulated PSF shape (the estimator assumes a Gaussian)")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads (1 on a loaded machine)")
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    torch.set_num_threads(2)
+    torch.set_num_threads(max(1, args.threads))
     results: dict[str, dict[str, dict[float, list[float]]]] = {}
     pc = paper_camera(4)
     # the paper's blur (RMS up to ~130 px at 5.3 um) spreads the stripes far beyond a 1200-row

@@ -254,10 +254,12 @@ def _hardware(analytic, fail=None, estimator=None, faults=None):
         if faults is not None:
             srv.faults = faults
         try:
-            # generous caps: the rendering camera is slow on a loaded machine (the caps have their own tests)
+            # generous caps: the rendering camera is slow on a loaded machine, and the light stays on while
+            # it renders (one lit read took over 10 s, the default duty window, at load 35; the caps have
+            # their own tests)
             res = run_hardware(None, 0, estimator or analytic, camera=cam, lens=lens, light=light,
                                temperature_limits_c=(15.0, 25.0), settle_s=0.02,
-                               light_limits=LightLimits(max_on_s=30.0, max_duty=1.0))
+                               light_limits=LightLimits(max_on_s=120.0, max_duty=1.0, duty_window_s=120.0))
         finally:
             lens.close()
         return res, cam, port, light
