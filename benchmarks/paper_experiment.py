@@ -90,8 +90,8 @@ def run_camera(camera: Camera, size: tuple[int, int], tile: int, max_bin: int, s
     cam = camera.replace(mu_px_per_m=mu)
     est = FourierRatioDFD(cam, tile=tile, stride=tile, max_bin=max_bin, gate_sharpness=8.0)  # one large region: sharp gate
     out: dict[str, dict[float, list[float]]] = {"mu": {0.0: [mu]}}
-    sources: dict[str, dict[float, list[str]]] = {}
-    out["sources"] = sources  # type: ignore[assignment]
+    refined_from: dict[str, dict[float, list[str]]] = {}
+    out["sources"] = refined_from  # type: ignore[assignment]
     for name, src in sources.items():
         out[f"{name} analytic"] = {}
         if refine is not None:
@@ -106,7 +106,7 @@ def run_camera(camera: Camera, size: tuple[int, int], tile: int, max_bin: int, s
                 if refine is not None:
                     d_r, source = refine(i1, i2, region)
                     errs_r.append(100.0 * (d_r - dcm / 100) / (dcm / 100))
-                    sources.setdefault(f"{name} refined", {}).setdefault(dcm, []).append(source)
+                    refined_from.setdefault(f"{name} refined", {}).setdefault(dcm, []).append(source)
             out[f"{name} analytic"][dcm] = errs
             if refine is not None:
                 out[f"{name} refined"][dcm] = errs_r
