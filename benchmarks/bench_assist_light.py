@@ -217,8 +217,8 @@ def main(argv: list[str] | None = None) -> int:
         f"- Textured targets: in focus with the light allowed {s_tl['in_focus']}/{s_tl['n']}, without "
         f"{s_tn['in_focus']}/{s_tn['n']} ({'met' if s_tl['in_focus'] >= s_tn['in_focus'] else 'NOT met'}: no lower "
         f"asked); declared out of focus {s_tl['wrong']} and {s_tn['wrong']}. The lit pair was estimated in "
-        f"{s_tl['lit']} of them; in {dropped} it clipped (a bright texture under the pattern) and was taken again "
-        f"unlit.",
+        f"{s_tl['lit']} of them; in {dropped} a lit frame clipped (a bright texture under the pattern) and the pair "
+        f"was taken unlit.",
         f"- The ambient frame (in focus with <= 3 frames of {n}; without it / taken / taken and subtracted): coherent "
         f"{' / '.join(map(str, f3['coherent']))}, projector {' / '.join(map(str, f3['projector']))}. It does not "
         f"pay for its frame: the controller's default takes no ambient frame (`ambient_frame` is only implied by "
@@ -256,8 +256,9 @@ Policy (`AssistedDFDController`), default: with a light named the DFD pair is li
 first frame (f1 at P_e1, f2 at P_e2: two frames, so that a lit verification frame still makes
 three) and the depth pooled over the tiles with a cue in the lit pair
 (`tdfd.autofocus.lit_tiles.pair_cue_mask`: contrast clear of each frame's noise floor, the
-pattern's edges on a texture-less target; `pool_lit_tiles`); a lit pair that clips more than
-1 % of the ROI (a bright texture under the pattern) is taken again unlit. Focus is declared on
+pattern's edges on a texture-less target; `pool_lit_tiles`); a lit frame that clips more than
+1 % of the ROI (a bright texture under the pattern) sends the pair unlit (a clipped lit f1:
+f2 and f1 unlit from where the lens is, one frame lost). Focus is declared on
 the controller's own evidence only (issue 20's rules, unchanged: an uncertainty under 0.25 px
 with the pair's own relative blur agreeing, or a verification frame). "ambient frame taken":
 the former policy, kept as an option (`ambient_frame=True`): the first frame is taken unlit

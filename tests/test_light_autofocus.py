@@ -65,8 +65,10 @@ def test_a_lit_pair_that_clips_is_taken_again_unlit():
     ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32))
     cmds, est = _run_until_estimate(ctrl, lambda cmd: (clipped if cmd.light else _noise(rng, tex)).astype(np.float32))
     caps = [(c.tag, c.light) for c in cmds if isinstance(c, Capture)]
-    assert caps == [("f1 lit", "coherent"), ("f2 lit", "coherent"), ("f1", None), ("f2", None)]
-    assert ctrl.lit is None and "clips" in ctrl.lit_dropped and ctrl.result.frames == 4
+    assert caps == [("f1 lit", "coherent"), ("f2", None), ("f1", None)]  # the lens was at P_e2 already
+    p1, p2 = CAM.lens_powers_dpt
+    assert [c.then_power_dpt for c in cmds if isinstance(c, Capture)] == [p2, p1, None]
+    assert ctrl.lit is None and "clips" in ctrl.lit_dropped and ctrl.result.frames == 3
     assert float(est.image_f1.max()) < 0.99  # the unlit frames are estimated
     # a lit pair that does not clip (a texture-less target) is estimated as it is
     flat = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32))

@@ -142,8 +142,8 @@ class AssistedDFDController(DFDController):
             of the ROI's pixels saturated (at :data:`tdfd.pair_check.SATURATION_LEVEL`) in
             either frame is not estimated: the pattern on a bright texture clips, and
             clipped edges are no defocus cue (measured on 100 textured bench targets: with
-            the check off, 3 declared out of focus); the pair is taken again unlit (plain
-            DFD: two more frames).
+            the check off, 3 declared out of focus); the pair is taken unlit from where the
+            lens is (a clipped lit ``f1``: ``f2`` and ``f1`` unlit, one frame lost).
         **kwargs: :class:`~tdfd.autofocus.dfd.DFDController` options.
 
     Attributes:
@@ -199,19 +199,8 @@ class AssistedDFDController(DFDController):
         self.lit_dropped = None
         if not self.ambient_frame:
             self._unlit_pair = None
-            f1, f2 = yield from self._lit_or_unlit(p1, p2, LitPair(self.illumination, None, None,
-                                                                   reason="a light named: the pair is lit"))
-            if self.lit is None:  # the light refused: an unlit pair already
-                return f1, f2
-            roi = self._roi_for(f1.image.shape[-2:])
-            clipped = max(float(np.mean(roi.crop(f.image) >= SATURATION_LEVEL)) for f in (f1, f2))
-            if clipped <= self.lit_max_saturated:
-                return f1, f2
-            self.lit_dropped = (f"the lit pair clips {100 * clipped:.1f} % of the ROI (over "
-                                f"{100 * self.lit_max_saturated:g} %): taken again unlit")
-            log.info("%s", self.lit_dropped)
-            self.lit = None
-            return (yield from super()._capture_pair(p1, p2))
+            return (yield from self._lit_or_unlit(p1, p2, LitPair(self.illumination, None, None,
+                                                                  reason="a light named: the pair is lit")))
         self.state = State.MOVE_F1
         yield from self._set_power(p1)
         self.state = State.CAPTURE_F1
@@ -258,8 +247,12 @@ class AssistedDFDController(DFDController):
             yield from self._set_power(p1)
             self.state = State.CAPTURE_F1
             f1, _ = yield from self._capture("f1 lit", then_power_dpt=p2, light=lit.pattern)
+            if self._clips(f1):  # the lens is at P_e2: the unlit pair from there, one frame lost
+                return (yield from self._unlit_from_p2(p1))
             self.state = State.CAPTURE_F2
             f2, _ = yield from self._capture("f2 lit", light=lit.pattern)
+            if self._clips(f2):
+                return (yield from self._unlit_from_p2(p1))
         else:
             self.state = State.CAPTURE_F2
             f2, _ = yield from self._capture("f2 lit", then_power_dpt=p1, light=lit.pattern)
@@ -274,6 +267,25 @@ class AssistedDFDController(DFDController):
             amb2 = lit.ambient_f2.image if lit.ambient_f2 is not None else amb1
             f1 = dataclasses.replace(f1, image=subtract_ambient(f1.image, amb1, self.ambient_pedestal))
             f2 = dataclasses.replace(f2, image=subtract_ambient(f2.image, amb2, self.ambient_pedestal))
+        return f1, f2
+
+    def _clips(self, frame: Frame) -> bool:
+        """A lit frame clips more than ``lit_max_saturated`` of the ROI (then the pair is taken unlit)."""
+        clipped = float(np.mean(self._roi_for(frame.image.shape[-2:]).crop(frame.image) >= SATURATION_LEVEL))
+        if clipped <= self.lit_max_saturated:
+            return False
+        self.lit_dropped = (f"the lit frame {frame.tag!r} clips {100 * clipped:.1f} % of the ROI (over "
+                            f"{100 * self.lit_max_saturated:g} %): the pair is taken unlit")
+        log.info("%s", self.lit_dropped)
+        return True
+
+    def _unlit_from_p2(self, p1: float) -> Generator[Command, Observation, tuple[Frame, Frame]]:
+        """The unlit DFD pair with the lens at ``P_e2``: ``f2`` there (then ``P_e1``), ``f1``."""
+        self.lit = None
+        self.state = State.CAPTURE_F2
+        f2, _ = yield from self._capture("f2", then_power_dpt=p1)
+        self.state = State.CAPTURE_F1
+        f1, _ = yield from self._capture("f1")
         return f1, f2
 
     # ------------------------------------------------------------------ ROI depth
