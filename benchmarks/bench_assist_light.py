@@ -36,6 +36,9 @@ FIGURE = ROOT / "docs" / "assist_light.png"
 
 log = logging.getLogger("bench_assist_light")
 
+#: the analytic estimator's grid for the 4x-binned paper camera (px): its blur radius reaches 64 binned px.
+PAPER_TILE, PAPER_STRIDE = 128, 32
+
 HEADER = ["camera", "targets", "light", "in focus (blur < 1 px)", "in focus with <= 3 frames", "frames median / max",
           "bench time ms median / max", "residual blur px median / max", "lit trials", "declared focus, blur >= 1 px",
           "contrast fall-backs"]
@@ -114,7 +117,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trials", type=int, default=100, help="texture-less targets per configuration (default 100)")
     ap.add_argument("--textured", type=int, default=None, help="textured targets (default: --trials)")
     ap.add_argument("--paper-trials", type=int, default=20,
-                    help="targets for the paper camera (default 20: its huge blur makes each trial slow to render)")
+                    help="targets for the paper camera (default 20: its huge blur makes each trial slow to render; "
+                         "0 leaves it out)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--model", default=None, help="ONNX file or 'analytic' (default: the shipped model)")
     ap.add_argument("--quick", action="store_true", help="10 targets everywhere")
@@ -127,8 +131,11 @@ def main(argv: list[str] | None = None) -> int:
     from tdfd import Camera
     from tdfd.autofocus.estimators import AnalyticEstimator, OnnxEstimator, load_estimator
     from tdfd.autofocus.report import write_report
+    from tdfd.autofocus.roi import Roi
     from tdfd.autofocus.sim import SimBench, trial_depths
     from tdfd.light import SimulatedLight
+
+    from .paper_experiment import paper_camera
 
     n = 10 if args.quick else args.trials
     n_tex = 10 if args.quick else (args.textured or n)
@@ -141,14 +148,14 @@ def main(argv: list[str] | None = None) -> int:
     compute_ms: dict[str, float] = {}
 
     def run(name: str, estimator: Any, depths: list[float], light: str | None, uniform: bool,
-            subtract: bool = False) -> list:
+            subtract: bool = False, options: dict | None = None, bench_kwargs: dict | None = None) -> list:
         t0 = time.perf_counter()
         key = estimator.camera.name
         charge = compute_ms[key] / 1e3 if key in compute_ms else "calibrated"
-        controller = {} if light is None else {"illumination": light, "subtract_ambient": subtract}
+        controller = {} if light is None else {"illumination": light, "subtract_ambient": subtract, **(options or {})}
         sim_light = SimulatedLight(estimator.camera) if light is not None else None
         with SimBench(estimator=estimator, seed=args.seed, controller=controller, light=sim_light,
-                      compute_s=charge) as bench:
+                      compute_s=charge, **(bench_kwargs or {})) as bench:
             if key not in compute_ms and bench.compute_charge_s != "measured":
                 compute_ms[key] = float(bench.compute_charge_s) * 1e3
             recs = []
@@ -158,7 +165,8 @@ def main(argv: list[str] | None = None) -> int:
                 bench.rng = np.random.default_rng([args.seed, i])
                 recs.append(bench.run_trial(d, "dfd", trial=i, uniform=uniform))
         write_report(OUT / f"{name}.json", recs, {"configuration": name, "estimator": type(estimator).__name__,
-                                                   "seed": args.seed, "light": light, "subtract_ambient": subtract})
+                                                   "seed": args.seed, "light": light, "subtract_ambient": subtract,
+                                                   "options": options or {}})
         print(f"  {name}: {len(recs)} trials in {time.perf_counter() - t0:.0f} s wall", flush=True)
         return recs
 
@@ -167,21 +175,32 @@ def main(argv: list[str] | None = None) -> int:
     print(f"estimator: {est_name}; {n} texture-less targets per light", flush=True)
     uni = {light or "none": run(f"reference_uniform_{light or 'none'}", est, depths, light, True)
            for light in ("coherent", "projector", None)}
+    # the ambient frame measured: taken (texture probe and lit-tile reference) and kept, or subtracted
+    amb = {light: run(f"reference_uniform_{light}_ambient_frame", est, depths, light, True,
+                      options={"ambient_frame": True}) for light in ("coherent", "projector")}
     sub = {light: run(f"reference_uniform_{light}_subtracted", est, depths, light, True, subtract=True)
            for light in ("coherent", "projector")}
-    paper_cam = Camera.preset("paper")
-    paper_est = AnalyticEstimator(paper_cam)
-    paper_depths = trial_depths(n_paper, args.seed, paper_cam.depth_range_m)
-    paper = {light or "none": run(f"paper_uniform_{light or 'none'}", paper_est, paper_depths, light, True)
-             for light in ("coherent", "projector", None)}
+    paper = {}
+    if n_paper > 0:
+        # the paper camera binned 4x (as benchmarks/paper_experiment.py does): its whole sensor is the
+        # read-out window, and the analytic estimator works on 128-px tiles (the blur radius reaches 64 binned px)
+        paper_cam = paper_camera(4)
+        paper_est = AnalyticEstimator(paper_cam, tile=PAPER_TILE, stride=PAPER_STRIDE)
+        paper_depths = trial_depths(n_paper, args.seed, paper_cam.depth_range_m)
+        paper_bench = {"readout_hw": paper_cam.sensor_size_px, "roi": Roi.centre(paper_cam.sensor_size_px, 0.9)}
+        paper = {light or "none": run(f"paper_uniform_{light or 'none'}", paper_est, paper_depths, light, True,
+                                      bench_kwargs=paper_bench) for light in ("coherent", "projector", None)}
     tex_depths = trial_depths(n_tex, args.seed, ref.depth_range_m)
     tex = {"coherent allowed": run("reference_textured_coherent", est, tex_depths, "coherent", False),
            "none": run("reference_textured_none", est, tex_depths, None, False)}
     wall = time.perf_counter() - t_wall
 
     rows = [row("reference", f"texture-less, {n}", k, summarise(v)) for k, v in uni.items()]
-    rows += [row("reference", f"texture-less, {n}", f"{k}, ambient subtracted", summarise(v)) for k, v in sub.items()]
-    rows += [row("paper (analytic estimator)", f"texture-less, {n_paper}", k, summarise(v)) for k, v in paper.items()]
+    rows += [row("reference", f"texture-less, {n}", f"{k}, ambient frame taken", summarise(v)) for k, v in amb.items()]
+    rows += [row("reference", f"texture-less, {n}", f"{k}, ambient frame subtracted", summarise(v))
+             for k, v in sub.items()]
+    rows += [row(f"paper, 4x binned (analytic, {PAPER_TILE}-px tiles)", f"texture-less, {n_paper}", k, summarise(v))
+             for k, v in paper.items()]
     rows += [row("reference", f"textured, {n_tex}", k, summarise(v)) for k, v in tex.items()]
     table = markdown_table(HEADER, rows)
     print(table)
@@ -189,20 +208,27 @@ def main(argv: list[str] | None = None) -> int:
     s_coh = summarise(uni["coherent"])
     share = s_coh["in_focus_3"] / s_coh["n"]
     s_tl, s_tn = summarise(tex["coherent allowed"]), summarise(tex["none"])
-    better = {k: ("subtracted" if summarise(sub[k])["in_focus_3"] > summarise(uni[k])["in_focus_3"] else
-                  "not subtracted") for k in sub}
+    f3 = {k: (summarise(uni[k])["in_focus_3"], summarise(amb[k])["in_focus_3"], summarise(sub[k])["in_focus_3"])
+          for k in amb}
+    dropped = sum(1 for r in tex["coherent allowed"] if r.extra.get("lit_dropped"))
     checks = [
         f"- Texture-less targets with the coherent light, reference camera: **{100 * share:.0f} %** in focus with "
         f"at most 3 frames ({'met' if share >= 0.95 else 'NOT met'}: >= 95 % asked).",
         f"- Textured targets: in focus with the light allowed {s_tl['in_focus']}/{s_tl['n']}, without "
         f"{s_tn['in_focus']}/{s_tn['n']} ({'met' if s_tl['in_focus'] >= s_tn['in_focus'] else 'NOT met'}: no lower "
-        f"asked); the light was switched on in {s_tl['lit']} of them.",
-        f"- Ambient subtraction (in focus with <= 3 frames, not subtracted vs subtracted): coherent "
-        f"{summarise(uni['coherent'])['in_focus_3']} vs {summarise(sub['coherent'])['in_focus_3']}, projector "
-        f"{summarise(uni['projector'])['in_focus_3']} vs {summarise(sub['projector'])['in_focus_3']} of {n}; better: "
-        f"coherent {better['coherent']}, projector {better['projector']}. The controller's default "
-        f"(`subtract_ambient=False`) keeps the frames as captured; `--subtract-ambient` turns it on.",
+        f"asked); declared out of focus {s_tl['wrong']} and {s_tn['wrong']}. The lit pair was estimated in "
+        f"{s_tl['lit']} of them; in {dropped} a lit frame clipped (a bright texture under the pattern) and the pair "
+        f"was taken unlit.",
+        f"- The ambient frame (in focus with <= 3 frames of {n}; without it / taken / taken and subtracted): coherent "
+        f"{' / '.join(map(str, f3['coherent']))}, projector {' / '.join(map(str, f3['projector']))}. It does not "
+        f"pay for its frame: the controller's default takes no ambient frame (`ambient_frame` is only implied by "
+        f"`--subtract-ambient`).",
     ]
+    if paper:
+        s_pc = summarise(paper["coherent"])
+        checks.append(f"- Paper camera (4x binned, analytic estimator): coherent {s_pc['in_focus']}/{s_pc['n']} in "
+                      f"focus, {s_pc['in_focus_3']}/{s_pc['n']} with <= 3 frames; declared out of focus "
+                      f"{s_pc['wrong']} (blur in binned 21.2 um pixels: 1 px there is 4 native pixels).")
     print("\n".join(checks))
     if not args.no_doc:
         plot(uni, FIGURE)
@@ -226,13 +252,21 @@ as 1/d^2, its peak set equal to the laser's at 0.3 m so that one exposure never 
 ambient light 1 (the unlit bench scene), pattern peak 0.8 of it. The light is switched through
 the `LightGuard` on the bench's clock, on for each lit exposure only.
 
-Policy (`AssistedDFDController`): the first DFD frame is taken unlit; if its ROI texture is
-below 1.2x the noise floor (a texture-less target reads 1.0-1.08), the pair is captured lit (f2 at P_e2, f1 at P_e1: three frames in
-all) and the depth pooled over the tiles the pattern covers (lit minus ambient f1); a
-textured target goes on unlit exactly as plain DFD; an unlit estimate that is not trusted is
-retried lit once before contrast-detect AF. "none": plain DFD, which falls back to
-contrast-detect AF on a texture-less target. "declared focus, blur >= 1 px": focus declared
-on a wrong estimate.
+Policy (`AssistedDFDController`), default: with a light named the DFD pair is lit from its
+first frame (f1 at P_e1, f2 at P_e2: two frames, so that a lit verification frame still makes
+three) and the depth pooled over the tiles with a cue in the lit pair
+(`tdfd.autofocus.lit_tiles.pair_cue_mask`: contrast clear of each frame's noise floor, the
+pattern's edges on a texture-less target; `pool_lit_tiles`); a lit frame that clips more than
+1 % of the ROI (a bright texture under the pattern) sends the pair unlit (a clipped lit f1:
+f2 and f1 unlit from where the lens is, one frame lost). Focus is declared on
+the controller's own evidence only (issue 20's rules, unchanged: an uncertainty under 0.25 px
+with the pair's own relative blur agreeing, or a verification frame). "ambient frame taken":
+the former policy, kept as an option (`ambient_frame=True`): the first frame is taken unlit
+and probes the texture; below 1.2x the noise floor the pair is lit (f2 at P_e2, f1 at P_e1:
+three frames before any verification frame) and pooled over the tiles the pattern covers
+(lit minus ambient f1); "subtracted": the ambient frame is also subtracted from the lit ones.
+"none": plain DFD, which falls back to contrast-detect AF on a texture-less target. "declared
+focus, blur >= 1 px": focus declared on a wrong estimate.
 
 {table}
 
@@ -241,12 +275,20 @@ on a wrong estimate.
 ![residual blur per light](assist_light.png)
 
 The paper camera (`Camera.preset("paper")`: 1 cm aperture, 9.8 cm sensor distance) blurs a
-target in the working range by 26-257 px (radius) in at least one frame of the DFD pair
-(0.3 m: 258 and 180 px; 1.0 m: 42 and 35 px), far beyond what the bench's 256x320 read-out
-window and 64-px tiles can measure with any light: its rows fail for that reason, not for the
-light's. `benchmarks/paper_experiment.py` measures that camera with 4x binning and 576-px
-regions; an autofocus on it needs the same (a binned full-sensor read-out and a large-tile
-estimator), which the bench does not have yet.
+target in the working range by 26-257 px (radius, native 5.3 um pixels) in at least one frame
+of the DFD pair (0.3 m: 258 and 180 px; 1.0 m: 42 and 35 px), beyond any 64-px tile. Its rows
+use the camera binned 4x as `benchmarks/paper_experiment.py` does (`paper_camera(4)`: 21.2 um
+pixels, the whole 300 x 400 binned sensor read out, ROI its centred 90 %), so the blur radius
+is 6.5-64 binned px, and the analytic Fourier-ratio estimator on {PAPER_TILE}-px tiles (stride
+{PAPER_STRIDE}); the shipped model covers the reference camera only (`tdfd.coverage`). "In focus"
+there is a blur radius under 1 binned pixel (4 native pixels). Binned blur radii of the pair:
+0.3 m 64 and 45 px, 0.5 m 34 and 14 px, 0.8 m 16 and 3 px, 1.0 m 10 and 9 px. Measured (seed 0,
+coherent): the targets nearer than 0.5 m end after 10 frames (DFD not trusted, contrast-detect AF
+without a peak: not declared), those at 0.5-0.74 m after 7 (the DFD focus not confirmed by the
+verification frame, whose relative-blur measure `tdfd.autofocus.evidence.relative_blur_px2` is
+searched up to 64 px^2, and a contrast search without a peak: not declared), and all 3 from
+0.8 m are declared in focus within 3 frames; none is declared out of focus. Measuring this
+camera's near range needs the evidence's search range and the tiles scaled to its blur.
 
 Trials not in focus within 3 frames (coherent, projector, textured with the light; {len(notes)}):
 {chr(10).join('- ' + x for x in notes[:40]) if notes else '- none'}

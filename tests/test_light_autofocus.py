@@ -9,6 +9,7 @@ from tdfd import Camera
 from tdfd.autofocus.assist import AssistedDFDController
 from tdfd.autofocus.dfd import DFDController
 from tdfd.autofocus.estimators import AnalyticEstimator
+from tdfd.errors import InputError
 from tdfd.autofocus.messages import Capture, Done, Estimate, Estimation, Frame, LensAck, SetPower
 from tdfd.autofocus.sim import SimBench
 from tdfd.light import SimulatedLight
@@ -39,7 +40,49 @@ def _run_until_estimate(ctrl, image):
     return cmds, cmd
 
 
-def test_texture_less_target_gets_a_lit_pair_of_three_frames():
+def test_without_an_ambient_frame_the_pair_is_lit_from_its_first_frame():
+    """The default: two lit frames at P_e1 then P_e2 (plain DFD's order and commands), no unlit frame."""
+    rng = np.random.default_rng(0)
+    stripes = np.full(HW, 0.5)
+    stripes[:, 60:100] += 0.35
+    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32))
+    assert ctrl.ambient_frame is False
+    cmds, est = _run_until_estimate(ctrl, lambda cmd: _noise(rng, stripes) if cmd.light else pytest.fail("unlit"))
+    caps = [c for c in cmds if isinstance(c, Capture)]
+    p1, p2 = CAM.lens_powers_dpt
+    assert [(c.tag, c.light, c.then_power_dpt) for c in caps] == [("f1 lit", "coherent", p2), ("f2 lit", "coherent", None)]
+    assert [c.power_dpt for c in cmds if isinstance(c, SetPower)] == [p1]
+    assert isinstance(est, Estimate) and ctrl.result.frames == 2 and ctrl.lit.ambient_f1 is None
+
+
+def test_a_lit_pair_that_clips_is_taken_again_unlit():
+    """A bright texture under the pattern clips: no estimate from that pair, plain DFD's unlit pair instead."""
+    rng = np.random.default_rng(7)
+    tex = np.full(HW, 0.6)
+    tex[:, ::8] = 0.9
+    clipped = np.clip(tex * 1.8, 0, 1)  # lit: most of the frame at full scale
+
+    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32))
+    cmds, est = _run_until_estimate(ctrl, lambda cmd: (clipped if cmd.light else _noise(rng, tex)).astype(np.float32))
+    caps = [(c.tag, c.light) for c in cmds if isinstance(c, Capture)]
+    assert caps == [("f1 lit", "coherent"), ("f2", None), ("f1", None)]  # the lens was at P_e2 already
+    p1, p2 = CAM.lens_powers_dpt
+    assert [c.then_power_dpt for c in cmds if isinstance(c, Capture)] == [p2, p1, None]
+    assert ctrl.lit is None and "clips" in ctrl.lit_dropped and ctrl.result.frames == 3
+    assert float(est.image_f1.max()) < 0.99  # the unlit frames are estimated
+    # a lit pair that does not clip (a texture-less target) is estimated as it is
+    flat = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32))
+    cmds, _ = _run_until_estimate(flat, lambda cmd: _noise(rng, np.full(HW, 0.5 if not cmd.light else 0.9)))
+    assert [c.light for c in cmds if isinstance(c, Capture)] == ["coherent", "coherent"] and flat.lit_dropped is None
+
+
+def test_subtraction_takes_the_ambient_frame():
+    assert AssistedDFDController(CAM, illumination="coherent", subtract_ambient=True).ambient_frame is True
+    with pytest.raises(InputError, match="ambient frame"):
+        AssistedDFDController(CAM, illumination="coherent", subtract_ambient=True, ambient_frame=False)
+
+
+def test_with_the_ambient_frame_a_texture_less_target_gets_a_lit_pair_of_three_frames():
     rng = np.random.default_rng(0)
     flat = np.full(HW, 0.5)
     stripes = flat.copy()
@@ -48,7 +91,7 @@ def test_texture_less_target_gets_a_lit_pair_of_three_frames():
     def image(cmd):
         return _noise(rng, stripes if cmd.light else flat)
 
-    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32))
+    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32), ambient_frame=True)
     cmds, est = _run_until_estimate(ctrl, image)
     caps = [c for c in cmds if isinstance(c, Capture)]
     assert [(c.tag, c.light) for c in caps] == [("f1", None), ("f2 lit", "coherent"), ("f1 lit", "coherent")]
@@ -58,12 +101,12 @@ def test_texture_less_target_gets_a_lit_pair_of_three_frames():
     assert ctrl.result.frames == 3
 
 
-def test_textured_target_never_asks_for_the_light():
+def test_with_the_ambient_frame_a_textured_target_never_asks_for_the_light():
     import cv2
 
     rng = np.random.default_rng(1)
     tex = np.clip(0.5 + cv2.GaussianBlur(0.6 * rng.standard_normal(HW), (0, 0), 2.0), 0, 1)  # 6-12 px texture
-    for ctrl in (AssistedDFDController(CAM, illumination="coherent"), DFDController(CAM)):
+    for ctrl in (AssistedDFDController(CAM, illumination="coherent", ambient_frame=True), DFDController(CAM)):
         cmds, est = _run_until_estimate(ctrl, lambda cmd: _noise(rng, tex))
         assert [c.light for c in cmds if isinstance(c, Capture)] == [None, None]
     # without a light named the policy is plain DFD even on a texture-less target
@@ -72,14 +115,15 @@ def test_textured_target_never_asks_for_the_light():
     assert all(c.light is None for c in cmds if isinstance(c, Capture))
 
 
-def test_dark_tiles_do_not_vote():
+@pytest.mark.parametrize("ambient", [True, False])
+def test_dark_tiles_do_not_vote(ambient):
     """Confident wrong depths on the tiles the pattern does not cover must not move the ROI depth."""
     rng = np.random.default_rng(2)
     flat = np.full(HW, 0.3)
     lit = flat.copy()
     lit[:, 100:124] += 0.4  # one stripe, 24 px wide
 
-    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32), roi=None)
+    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32), roi=None, ambient_frame=ambient)
     _, est = _run_until_estimate(ctrl, lambda cmd: _noise(rng, lit if cmd.light else flat))
     h = (est.image_f1.shape[0] - 64) // 32 + 1
     w = (est.image_f1.shape[1] - 64) // 32 + 1
@@ -101,10 +145,11 @@ def test_dark_tiles_do_not_vote():
     assert abs(1 / plain.last_aggregate.depth_m - 1 / 0.5) > 0.4
 
 
-def test_pattern_missing_the_roi_falls_back_to_contrast():
+@pytest.mark.parametrize("ambient", [True, False])
+def test_pattern_missing_the_roi_falls_back_to_contrast(ambient):
     rng = np.random.default_rng(3)
     flat = np.full(HW, 0.4)
-    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32))
+    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32), ambient_frame=ambient)
     _, est = _run_until_estimate(ctrl, lambda cmd: _noise(rng, flat))  # the light shows nothing
     h, w = ((s - 64) // 32 + 1 for s in est.image_f1.shape)
     cmd = ctrl.step(Estimation(np.full((h, w), 0.6), np.full((h, w), 0.9), 64, 32, t_s=1.0))
@@ -124,20 +169,21 @@ def test_bench_lights_a_texture_less_target_into_focus(analytic, pattern):
     with SimBench(estimator=analytic, light=light, controller={"illumination": pattern}, compute_s=0.001,
                   readout_hw=HW) as bench:
         rec = bench.run_trial(0.5, "dfd", uniform=True)
-        assert rec.in_focus and rec.frames == 3 and rec.method == "dfd"
+        # the lit pair, and a lit verification frame if the estimate's uncertainty asks for one
+        assert rec.in_focus and rec.frames <= 3 and rec.method == "dfd"
         assert rec.extra["light"] == pattern and rec.extra["lit_tiles"] > 0
-        assert rec.extra["light_on_ms"] == pytest.approx(2 * bench.timing.exposure_s * 1e3)
-        assert not light.is_on and light.switch_count == 2
+        assert rec.extra["light_on_ms"] == pytest.approx(rec.frames * bench.timing.exposure_s * 1e3)
+        assert not light.is_on and light.switch_count == rec.frames
         unlit = bench.run_trial(0.5, "dfd", uniform=True, illumination=None)
         assert unlit.method == "contrast" and unlit.frames > 3  # plain DFD falls back on the same target
-        assert light.switch_count == 2
+        assert light.switch_count == rec.frames
 
 
-def test_bench_textured_target_is_not_lit(analytic):
+def test_bench_textured_target_is_not_lit_with_the_ambient_frame(analytic):
     light = SimulatedLight(CAM)
     # evidence_s fixed: the default calibrates the evidence's compute time on each bench (wall clock)
-    with SimBench(estimator=analytic, light=light, controller={"illumination": "coherent"}, compute_s=0.001,
-                  evidence_s=0.005, readout_hw=HW, seed=4) as bench:
+    with SimBench(estimator=analytic, light=light, controller={"illumination": "coherent", "ambient_frame": True},
+                  compute_s=0.001, evidence_s=0.005, readout_hw=HW, seed=4) as bench:
         rec = bench.run_trial(0.6, "dfd", trial=1)
     with SimBench(estimator=analytic, compute_s=0.001, evidence_s=0.005, readout_hw=HW, seed=4) as bench:
         ref = bench.run_trial(0.6, "dfd", trial=1)
@@ -158,7 +204,7 @@ def test_untrusted_unlit_estimate_is_retried_lit_only_on_a_weak_texture(amplitud
     snr = pair_texture_snr(*frames, Roi.centre(HW))
     assert (1.2 < snr < 3.0) if retried else snr > 3.0
     it = iter(frames * 3)
-    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32))
+    ctrl = AssistedDFDController(CAM, illumination="coherent", grid=(64, 32), ambient_frame=True)
     cmds, est = _run_until_estimate(ctrl, lambda cmd: next(it))
     assert [c.light for c in cmds if isinstance(c, Capture)] == [None, None]  # textured in f1: unlit pair
     h, w = ((s - 64) // 32 + 1 for s in est.image_f1.shape)

@@ -75,7 +75,8 @@ def test_bench_light_off_after_every_emulator_fault(analytic, kind):
         _watch_lens(bench, light)
         recs = [bench.run_trial(d, "dfd", trial=i, uniform=True) for i, d in enumerate((0.4, 0.8))]
         assert not light.is_on and not bench.light_guard.is_on
-        assert bench.light_guard.total_on_s <= 4 * bench.timing.exposure_s + 1e-9  # two lit frames per trial at most
+        # on for lit exposures only: each switch-on is one exposure
+        assert bench.light_guard.total_on_s == pytest.approx(light.switch_count * bench.timing.exposure_s)
     if kind == "disconnect":
         assert recs[-1].status == "failed"
     assert light.switch_count >= 1  # the faults hit a loop that did light the target
@@ -192,12 +193,12 @@ def test_bench_caps_refuse_and_the_loop_goes_on_unlit(analytic):
         assert rec.extra["light"] is None and rec.method == "contrast"
         assert not light.is_on
     light = SimulatedLight(CAM)
-    # duty cap: 2 lit frames (4 ms) fit in 0.5 % of 1 s only once per second of bench time
-    with _bench(analytic, light, light_limits=LightLimits(max_on_s=1.0, max_duty=0.005, duty_window_s=1.0)) as bench:
+    # duty cap: a lit pair and a lit verification frame (6 ms) fit in 0.7 % of 1 s only once per second
+    with _bench(analytic, light, light_limits=LightLimits(max_on_s=1.0, max_duty=0.007, duty_window_s=1.0)) as bench:
         first = bench.run_trial(0.5, "dfd", uniform=True, idle_s=0.0)
         second = bench.run_trial(0.5, "dfd", uniform=True, idle_s=0.0)
         assert first.extra["light"] == "coherent" and second.extra["light"] is None
-        assert bench.light_guard.duty() <= 0.005 + 1e-9
+        assert bench.light_guard.refusals >= 1 and bench.light_guard.duty() <= 0.007 + 1e-9
         assert not light.is_on
 
 
@@ -253,10 +254,12 @@ def _hardware(analytic, fail=None, estimator=None, faults=None):
         if faults is not None:
             srv.faults = faults
         try:
-            # generous caps: the rendering camera is slow on a loaded machine (the caps have their own tests)
+            # generous caps: the rendering camera is slow on a loaded machine, and the light stays on while
+            # it renders (one lit read took over 10 s, the default duty window, at load 35; the caps have
+            # their own tests)
             res = run_hardware(None, 0, estimator or analytic, camera=cam, lens=lens, light=light,
                                temperature_limits_c=(15.0, 25.0), settle_s=0.02,
-                               light_limits=LightLimits(max_on_s=30.0, max_duty=1.0))
+                               light_limits=LightLimits(max_on_s=120.0, max_duty=1.0, duty_window_s=120.0))
         finally:
             lens.close()
         return res, cam, port, light
@@ -266,7 +269,7 @@ def _hardware(analytic, fail=None, estimator=None, faults=None):
 
 def test_hardware_lit_focus_and_the_line_read_back(analytic):
     res, cam, port, light = _hardware(analytic)
-    assert res.status == "focused" and res.frames == 3 and cam.lit_reads == 2
+    assert res.status == "focused" and res.frames <= 3 and cam.lit_reads == res.frames  # every frame lit
     assert port.cts is False and not light.is_on
     light.close()
 

@@ -5,32 +5,43 @@ for frames lit by an assist light (``Capture(..., light=PATTERN)``); the plant s
 the light through its :class:`~tdfd.light.guard.LightGuard`, on for that exposure only.
 The controller itself stays pure: it never touches a light.
 
-One focus request with a light allowed:
+One focus request with a light allowed, by default (``ambient_frame=False``):
 
-1. ``f1`` unlit at ``P_e1`` (the move to ``P_e2`` commanded at its exposure end, as in
-   plain DFD). Its ROI texture over the noise floor
-   (:func:`~tdfd.autofocus.sharpness.texture_snr`) decides:
+1. ``f1`` **lit** at ``P_e1`` (the move to ``P_e2`` commanded at its exposure end, as in
+   plain DFD), ``f2`` **lit** at ``P_e2``, estimate on the lit pair: two frames, so that a
+   verification frame (lit too) still makes three. Every target is lit, textured ones as
+   well (the pattern adds edges to a texture; measured: no lower in-focus rate).
+2. **Lit-tile pooling**: the ROI depth is aggregated over the tiles with a cue in the lit
+   pair only (:func:`~tdfd.autofocus.lit_tiles.pair_cue_mask`: a tile's contrast clear
+   of the frame's noise floor; on a texture-less target that is where the pattern's
+   edges are), so tiles without a cue give no depth, confident or not; no such tile in
+   the ROI is a low-confidence estimate: contrast-detect AF takes over.
+
+With the ambient frame (``ambient_frame=True``, implied by ``subtract_ambient``):
+
+1. ``f1`` unlit at ``P_e1`` (the move to ``P_e2`` commanded at its exposure end). Its ROI
+   texture over the noise floor (:func:`~tdfd.autofocus.sharpness.texture_snr`) decides:
 2. textured (``>= light_texture_snr``, default 1.2): plain DFD goes on (``f2`` unlit, estimate, ...):
    the same frames, commands and result as without a light;
 3. texture-less: ``f2`` **lit** at ``P_e2`` (then back to ``P_e1``), ``f1`` **lit** at
-   ``P_e1``, estimate on the lit pair: three frames in all. The unlit ``f1`` is the
-   ambient frame at the same lens power as the lit ``f1``:
+   ``P_e1``, estimate on the lit pair: three frames before any verification frame. The
+   unlit ``f1`` is the ambient frame at the same lens power as the lit ``f1``:
 
-   * **lit-tile pooling**: the ROI depth is aggregated over the tiles the pattern covers
-     only (:func:`~tdfd.autofocus.lit_tiles.lit_tile_mask` of lit minus ambient ``f1``),
-     so tiles without a pattern edge give no depth, confident or not; no lit tile in
-     the ROI (the pattern missed it, or it is too dim) is a low-confidence estimate:
-     contrast-detect AF takes over;
+   * **lit-tile pooling** over the tiles the pattern covers
+     (:func:`~tdfd.autofocus.lit_tiles.lit_tile_mask` of lit minus ambient ``f1``);
    * **ambient subtraction** (``subtract_ambient=True``): the ambient ``f1`` is
      subtracted from both lit frames before estimation (exact for ``f1``, the same
      power; for ``f2`` it removes the ambient level, which a texture-less target's blur
-     does not change). Off by default: docs/BENCHMARKS.md records the measurement that
-     chose it.
+     does not change).
 4. If an unlit pair's estimate is not trusted (low confidence, step 2) and its ROI texture
    is weak (below ``retry_texture_snr`` x the noise floor), the light is tried once before
    contrast-detect AF: ``f2`` lit (the lens is at ``P_e2``), ``f1``
    lit, estimate, with both unlit frames as ambient. A lit estimate that is not trusted
    either falls back to contrast-detect AF as plain DFD does.
+
+docs/BENCHMARKS.md (``assist_light``) measures both side by side: the ambient frame does
+not pay for its frame (coherent light: 98 against 64 of 100 texture-less targets in focus
+with at most 3 frames).
 
 ``illumination=None`` (no light named) never asks for a lit frame: the controller is
 then plain DFD. A dry run never lights (it does not move the lens either).
@@ -38,8 +49,8 @@ then plain DFD. A dry run never lights (it does not move the lens either).
 Example:
     >>> from tdfd import Camera
     >>> ctrl = AssistedDFDController(Camera.preset("reference"), illumination="coherent")
-    >>> ctrl.illumination, ctrl.subtract_ambient
-    ('coherent', False)
+    >>> ctrl.illumination, ctrl.subtract_ambient, ctrl.ambient_frame
+    ('coherent', False, False)
 """
 
 from __future__ import annotations
@@ -53,9 +64,10 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError
+from ..pair_check import SATURATION_LEVEL
 from .aggregate import DepthAggregate, aggregate_depth
 from .dfd import DFDController
-from .lit_tiles import lit_tile_mask, subtract_ambient
+from .lit_tiles import lit_tile_mask, pair_cue_mask, pool_lit_tiles, subtract_ambient
 from .machine import Abort, Gen
 from .messages import Command, Estimation, Frame, Observation, State
 from .roi import Roi, roi_tile_mask
@@ -72,9 +84,11 @@ class LitPair:
 
     Attributes:
         pattern: the light's pattern.
-        ambient_f1: the unlit frame at ``P_e1`` (same power as the lit ``f1``).
+        ambient_f1: the unlit frame at ``P_e1`` (same power as the lit ``f1``), ``None``
+            when the pair was lit without an ambient frame (``ambient_frame=False``).
         ambient_f2: the unlit frame at ``P_e2`` if one was taken, else ``None``.
         lit_f1: the lit frame at ``P_e1`` as captured (before any subtraction).
+        lit_f2: the lit frame at ``P_e2`` as captured.
         lit_tiles: tiles the pattern covers inside the ROI (after estimation).
         roi_tiles: tiles of the ROI (after estimation).
         subtracted: the ambient frame was subtracted from the lit ones.
@@ -82,9 +96,10 @@ class LitPair:
     """
 
     pattern: str
-    ambient_f1: Frame
+    ambient_f1: Frame | None
     ambient_f2: Frame | None
     lit_f1: Frame | None = None
+    lit_f2: Frame | None = None
     lit_tiles: int = 0
     roi_tiles: int = 0
     subtracted: bool = False
@@ -115,6 +130,20 @@ class AssistedDFDController(DFDController):
             with the shipped model: 0.01 instead of its 0.003 sends two right lit estimates
             (confidence 0.007) to contrast AF, which ends out of focus on them.
         ambient_pedestal: level added back after the subtraction (intensity units).
+        ambient_frame: ``True``: the unlit ``f1`` probes the ROI's texture and is the
+            ambient frame of the lit tiles (three frames before a verification frame);
+            ``False``: with a light named, the DFD pair is lit from its first frame (two
+            frames; a verification frame makes three), its lit tiles found in the lit
+            frames themselves (:func:`~tdfd.autofocus.lit_tiles.pair_cue_mask`); textured
+            targets are lit too. Default (``None``): the ambient frame is taken only when
+            it is subtracted (``subtract_ambient``): measured on 100 texture-less bench
+            targets it does not pay for its frame (docs/BENCHMARKS.md, ``assist_light``).
+        lit_max_saturated: without the ambient frame, a lit pair with more than this fraction
+            of the ROI's pixels saturated (at :data:`tdfd.pair_check.SATURATION_LEVEL`) in
+            either frame is not estimated: the pattern on a bright texture clips, and
+            clipped edges are no defocus cue (measured on 100 textured bench targets: with
+            the check off, 3 declared out of focus); the pair is taken unlit from where the
+            lens is (a clipped lit ``f1``: ``f2`` and ``f1`` unlit, one frame lost).
         **kwargs: :class:`~tdfd.autofocus.dfd.DFDController` options.
 
     Attributes:
@@ -125,13 +154,23 @@ class AssistedDFDController(DFDController):
     def __init__(self, camera: Camera, *, illumination: str | None = None, subtract_ambient: bool = False,
                  light_texture_snr: float = 1.2, retry_texture_snr: float = 3.0,
                  lit_k_noise: float = 3.0, lit_rel: float = 0.05, lit_min_confidence: float | None = None,
-                 ambient_pedestal: float = 0.02, **kwargs) -> None:
+                 ambient_pedestal: float = 0.02, ambient_frame: bool | None = None,
+                 lit_max_saturated: float = 0.01, **kwargs) -> None:
         super().__init__(camera, **kwargs)
         if illumination is not None and not isinstance(illumination, str):
             raise InputError(f"illumination must be a pattern name or None, got {illumination!r}")
         if lit_min_confidence is not None and not 0 <= lit_min_confidence <= 1:
             raise InputError(f"lit_min_confidence must be in [0, 1], got {lit_min_confidence}")
+        if ambient_frame is None:
+            ambient_frame = bool(subtract_ambient)
+        if subtract_ambient and not ambient_frame:
+            raise InputError("subtract_ambient needs the ambient frame (ambient_frame=True)")
         self.illumination = illumination
+        self.ambient_frame = bool(ambient_frame)
+        if not 0 <= lit_max_saturated <= 1:
+            raise InputError(f"lit_max_saturated must be in [0, 1], got {lit_max_saturated}")
+        self.lit_max_saturated = float(lit_max_saturated)
+        self.lit_dropped: str | None = None
         self.subtract_ambient = bool(subtract_ambient)
         self.light_texture_snr = float(light_texture_snr)
         self.retry_texture_snr = float(retry_texture_snr)
@@ -157,6 +196,11 @@ class AssistedDFDController(DFDController):
             a1, a2 = self._unlit_pair  # the lens is still at P_e2 after the unlit f2
             self._retry_lit = False
             return (yield from self._lit_or_unlit(p1, p2, LitPair(self.illumination, a1, a2, reason=self._retry_reason)))
+        self.lit_dropped = None
+        if not self.ambient_frame:
+            self._unlit_pair = None
+            return (yield from self._lit_or_unlit(p1, p2, LitPair(self.illumination, None, None,
+                                                                  reason="a light named: the pair is lit")))
         self.state = State.MOVE_F1
         yield from self._set_power(p1)
         self.state = State.CAPTURE_F1
@@ -181,7 +225,7 @@ class AssistedDFDController(DFDController):
                       ) -> Generator[Command, Observation, tuple[Frame, Frame]]:
         """The lit pair; if the light refuses or fails (a cap, a broken light), plain DFD's unlit pair."""
         try:
-            return (yield from self._lit_pair(p1, lit))
+            return (yield from self._lit_pair(p1, p2, lit))
         except Abort as exc:
             if exc.status != "failed" or "light" not in exc.reason.lower():
                 raise  # a halt, or a lens / camera failure: not the light's
@@ -193,23 +237,55 @@ class AssistedDFDController(DFDController):
             self._unlit_pair = None  # the light is not tried again in this cycle
             return pair
 
-    def _lit_pair(self, p1: float, lit: LitPair) -> Generator[Command, Observation, tuple[Frame, Frame]]:
-        """``f2`` lit at ``P_e2`` (where the lens is), then ``f1`` lit at ``P_e1``."""
+    def _lit_pair(self, p1: float, p2: float, lit: LitPair) -> Generator[Command, Observation, tuple[Frame, Frame]]:
+        """After an ambient ``f1``: ``f2`` lit at ``P_e2`` (where the lens is), then ``f1`` lit at
+        ``P_e1``; without one: ``f1`` lit at ``P_e1``, then ``f2`` lit at ``P_e2`` (plain DFD's order)."""
         self.lit = lit
         self.lit_cycles += 1
-        self.state = State.CAPTURE_F2
-        f2, _ = yield from self._capture("f2 lit", then_power_dpt=p1, light=lit.pattern)
-        self.state = State.CAPTURE_F1
-        f1, _ = yield from self._capture("f1 lit", light=lit.pattern)
-        lit.lit_f1 = f1
+        if lit.ambient_f1 is None:
+            self.state = State.MOVE_F1
+            yield from self._set_power(p1)
+            self.state = State.CAPTURE_F1
+            f1, _ = yield from self._capture("f1 lit", then_power_dpt=p2, light=lit.pattern)
+            if self._clips(f1):  # the lens is at P_e2: the unlit pair from there, one frame lost
+                return (yield from self._unlit_from_p2(p1))
+            self.state = State.CAPTURE_F2
+            f2, _ = yield from self._capture("f2 lit", light=lit.pattern)
+            if self._clips(f2):
+                return (yield from self._unlit_from_p2(p1))
+        else:
+            self.state = State.CAPTURE_F2
+            f2, _ = yield from self._capture("f2 lit", then_power_dpt=p1, light=lit.pattern)
+            self.state = State.CAPTURE_F1
+            f1, _ = yield from self._capture("f1 lit", light=lit.pattern)
+        lit.lit_f1, lit.lit_f2 = f1, f2
         if self.lit_min_confidence is not None:
             self.min_confidence = float(self.lit_min_confidence)
-        if self.subtract_ambient:
+        if self.subtract_ambient and lit.ambient_f1 is not None:
             lit.subtracted = True
             amb1 = lit.ambient_f1.image
             amb2 = lit.ambient_f2.image if lit.ambient_f2 is not None else amb1
             f1 = dataclasses.replace(f1, image=subtract_ambient(f1.image, amb1, self.ambient_pedestal))
             f2 = dataclasses.replace(f2, image=subtract_ambient(f2.image, amb2, self.ambient_pedestal))
+        return f1, f2
+
+    def _clips(self, frame: Frame) -> bool:
+        """A lit frame clips more than ``lit_max_saturated`` of the ROI (then the pair is taken unlit)."""
+        clipped = float(np.mean(self._roi_for(frame.image.shape[-2:]).crop(frame.image) >= SATURATION_LEVEL))
+        if clipped <= self.lit_max_saturated:
+            return False
+        self.lit_dropped = (f"the lit frame {frame.tag!r} clips {100 * clipped:.1f} % of the ROI (over "
+                            f"{100 * self.lit_max_saturated:g} %): the pair is taken unlit")
+        log.info("%s", self.lit_dropped)
+        return True
+
+    def _unlit_from_p2(self, p1: float) -> Generator[Command, Observation, tuple[Frame, Frame]]:
+        """The unlit DFD pair with the lens at ``P_e2``: ``f2`` there (then ``P_e1``), ``f1``."""
+        self.lit = None
+        self.state = State.CAPTURE_F2
+        f2, _ = yield from self._capture("f2", then_power_dpt=p1)
+        self.state = State.CAPTURE_F1
+        f1, _ = yield from self._capture("f1")
         return f1, f2
 
     # ------------------------------------------------------------------ ROI depth
@@ -223,15 +299,18 @@ class AssistedDFDController(DFDController):
         h, w = obs.depth_m.shape
         y0, x0 = offset
         y1, x1 = y0 + (h - 1) * obs.stride + obs.tile, x0 + (w - 1) * obs.stride + obs.tile
-        covered = lit_tile_mask(lit.lit_f1.image[..., y0:y1, x0:x1], lit.ambient_f1.image[..., y0:y1, x0:x1],
-                                obs.tile, obs.stride, self.lit_k_noise, self.lit_rel)
-        pooled = mask & covered
+        box = (..., slice(y0, y1), slice(x0, x1))
+        if lit.ambient_f1 is not None:
+            covered = lit_tile_mask(lit.lit_f1.image[box], lit.ambient_f1.image[box], obs.tile, obs.stride,
+                                    self.lit_k_noise, self.lit_rel)
+        else:
+            assert lit.lit_f2 is not None
+            covered = pair_cue_mask(lit.lit_f1.image[box], lit.lit_f2.image[box], obs.tile, obs.stride,
+                                    self.lit_k_noise, self.lit_rel)
+        agg, pooled = pool_lit_tiles(obs.depth_m, obs.confidence, covered, mask)
         lit.roi_tiles, lit.lit_tiles = int(mask.sum()), int(pooled.sum())
         log.info("lit pair (%s): the pattern covers %d of the ROI's %d tiles", lit.pattern, lit.lit_tiles, lit.roi_tiles)
-        if not pooled.any():
-            return DepthAggregate(depth_m=math.nan, inverse_depth=math.nan, confidence=0.0, spread_dpt=math.nan,
-                                  tiles=int(mask.sum()), inliers=0), pooled
-        return aggregate_depth(obs.depth_m, obs.confidence, pooled), pooled
+        return agg, pooled
 
     def _verify_light(self) -> str | None:
         """A verification frame is compared with the DFD pair: lit like it (an unlit frame of a
@@ -257,7 +336,7 @@ class AssistedDFDController(DFDController):
     def lit_summary(self) -> dict:
         """What the light did in the last cycle (for reports): pattern, tiles, subtraction."""
         if self.lit is None:
-            return {"light": None}
+            return {"light": None, "lit_dropped": self.lit_dropped}
         return {"light": self.lit.pattern, "lit_tiles": self.lit.lit_tiles, "roi_tiles": self.lit.roi_tiles,
                 "ambient_subtracted": self.lit.subtracted, "light_reason": self.lit.reason,
                 "lit_cycles": self.lit_cycles}
