@@ -28,6 +28,7 @@ BENCHMARKS = {
     "overview": "benchmarks.overview_figure",
     "calibration": "benchmarks.bench_calibration",
     "camera_pairs": "benchmarks.bench_camera_pairs",
+    "calibrated_af": "benchmarks.bench_calibrated_af",
 }
 
 
