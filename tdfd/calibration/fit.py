@@ -41,7 +41,7 @@ from ..camera_file import CameraFile
 from ..capture.folder import CaptureFolderError, CaptureFrame
 from ..errors import InputError
 from .focus import focus_measure, region_grid, symmetric_peak
-from .measure import PairMeasurement, measure_pair
+from .measure import PREDICTION_REGION_PX, PairMeasurement, measure_pair
 from .registration import fit_magnification_per_dpt, relative_magnification
 
 __all__ = ["CalibrationError", "Scene", "CalibrationResult", "group_scenes", "estimate_breathing",
@@ -277,7 +277,10 @@ def calibrate_known_distance(frames: Sequence[CaptureFrame], nominal: CameraFile
     meas: list[PairMeasurement] = []
     for s in scenes:
         for a, b in s.pairs:
-            pm = measure_pair(nominal.camera, a.image, b.image, a.power_dpt, b.power_dpt, region, m, (a.name, b.name))
+            # a planar target: large regions (PREDICTION_REGION_PX), whose D the larger blur does not bias
+            big = PREDICTION_REGION_PX if min(a.shape) >= PREDICTION_REGION_PX else region
+            pm = measure_pair(nominal.camera, a.image, b.image, a.power_dpt, b.power_dpt, max(region, big), m,
+                              (a.name, b.name))
             c = pm.confidence
             sel = c >= min_confidence * c.max()
             rows.append((a.power_dpt, b.power_dpt, s.distance_m, float(np.median(pm.square_difference[sel])), a.name))
