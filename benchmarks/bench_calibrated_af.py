@@ -82,7 +82,7 @@ def capture_and_calibrate(route: str, root: Path, size: int, seed: int) -> Camer
     return load_camera_file(out)
 
 
-def estimator_for(cal: CameraFile, cal_path: Path, model: Path | None) -> tuple[object, str]:
+def estimator_for(cal: CameraFile, cal_path: Path, model: Path | None, tile: int = 64) -> tuple[object, str]:
     """Step 3: the model if it covers the calibrated camera, else the analytic estimator; with breathing registration."""
     why = "no ONNX model given"
     if model is not None:
@@ -93,17 +93,18 @@ def estimator_for(cal: CameraFile, cal_path: Path, model: Path | None) -> tuple[
         else:
             est = OnnxEstimator(model)
             return BreathingRegistered(est, cal.magnification_per_dpt), f"ONNX model {model.name}"
-    return BreathingRegistered(AnalyticEstimator(cal.camera), cal.magnification_per_dpt), f"analytic ({why})"
+    return (BreathingRegistered(AnalyticEstimator(cal.camera, tile=tile), cal.magnification_per_dpt),
+            f"analytic, {tile}-px tiles ({why})")
 
 
-def run_route(route: str, trials: int, size: int, seed: int, model: Path | None) -> dict:
+def run_route(route: str, trials: int, size: int, seed: int, model: Path | None, tile: int = 64) -> dict:
     """Capture, calibrate, pick the model and run ``trials`` autofocus trials; returns the figures."""
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         t0 = time.perf_counter()
         cal = capture_and_calibrate(route, root, size, seed)
         t_cal = time.perf_counter() - t0
-        est, est_name = estimator_for(cal, root / f"CAM-{route}.json", model)
+        est, est_name = estimator_for(cal, root / f"CAM-{route}.json", model, tile)
     print(f"{route}: calibrated in {t_cal:.0f} s: mu {cal.camera.mu_px_per_m:.5g} px/m (true "
           f"{TRUE.camera.mu_px_per_m:.5g}), f0 {cal.camera.fixed_focal_length_m * 1e3:.4f} mm, "
           f"m {100 * cal.magnification_per_dpt:.3f} %/dpt; estimator: {est_name}", flush=True)
@@ -137,13 +138,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", type=int, default=384, help="capture frame size for calibration (px)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--model", default=None, help="ONNX model to try first (default: the shipped model)")
+    ap.add_argument("--tile", type=int, default=64, help="analytic estimator tile (px) when the model does not serve")
     ap.add_argument("--routes", nargs="+", default=["self", "known-distance"], choices=["self", "known-distance"])
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/BENCHMARKS.md alone")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
     model = Path(args.model) if args.model else default_model_path()
     model = model if model.is_file() else None
-    results = [run_route(r, args.trials, args.size, args.seed, model) for r in args.routes]
+    results = [run_route(r, args.trials, args.size, args.seed, model, args.tile) for r in args.routes]
     rows = []
     for r in results:
         cal = r["cal"]
@@ -160,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
              f"uniform in inverse depth, seed {args.seed}), single-shot DFD autofocus, 256x320 read-out. "
              "The simulated optics are the TRUE camera (mu +15 %, ECVFL 0.3 dpt stronger than commanded, "
              "0.4 %/dpt breathing); the controller and estimator get only the calibrated CAM.json. "
-             f"Estimator: {results[0]['estimator'].split(' (')[0]}. ")
+             f"Estimator: {results[0]['estimator'].split(' (')[0]} (stride 32). ")
     if results and results[0]["estimator"].startswith("analytic"):
         body += (f"The model `{model_txt}` does not serve this camera (its `tdfd.coverage` refuses it: "
                  "another blur per dioptre), so the analytic estimator on CAM.json serves it; "
@@ -172,7 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     print(body)
     if not args.no_write:
         update_section("calibrated_af", "End to end: capture, calibrate, autofocus with a camera that is no preset",
-                       body, f".venv/bin/python -m benchmarks.bench_calibrated_af --trials {args.trials} --seed {args.seed}"
+                       body, f".venv/bin/python -m benchmarks.bench_calibrated_af --trials {args.trials} --seed {args.seed} "
+                       f"--tile {args.tile}"
                        + (f" --model {args.model}" if args.model else ""))
     return 0
 
