@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", type=int, default=384, help="capture frame size for calibration (px)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--model", default=None, help="ONNX model to try first (default: the shipped model)")
-    ap.add_argument("--tile", type=int, default=64, help="analytic estimator tile (px) when the model does not serve")
+    ap.add_argument("--tile", type=int, default=128, help="analytic estimator tile (px) when the model does not serve")
     ap.add_argument("--routes", nargs="+", default=["self", "known-distance"], choices=["self", "known-distance"])
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/BENCHMARKS.md alone")
     args = ap.parse_args(argv)
