@@ -29,6 +29,7 @@ BENCHMARKS = {
     "calibration": "benchmarks.bench_calibration",
     "camera_pairs": "benchmarks.bench_camera_pairs",
     "breathing": "benchmarks.bench_breathing",
+    "calibrated_af": "benchmarks.bench_calibrated_af",
 }
 
 

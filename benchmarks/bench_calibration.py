@@ -14,7 +14,7 @@ JSON knows none of that. For each seed (a new dead-leaves scene and noise):
 * known distances: one pair each at 0.35, 0.5 and 0.8 m, distances recorded;
 
 then each calibrated camera (and the true one, "oracle") predicts the in-focus power from one fresh pair (analytic
-estimator, breathing registered) at 0.35 ... 0.95 m; the error against the true commanded
+estimator, breathing registered) at 0.3 ... 1.0 m; the error against the true commanded
 in-focus power is reported (target: 0.03 dpt), with the errors of K (= mu A d_s / 2) and
 of the breathing (target 10 %).
 """
@@ -31,6 +31,7 @@ import numpy as np
 
 from tdfd import Camera
 from tdfd.calibration import calibrate_known_distance, calibrate_self, in_focus_power_from_pair
+from tdfd.calibration.measure import PREDICTION_REGION_PX
 from tdfd.camera_file import CameraFile
 from tdfd.capture import capture_session, read_folder
 from tdfd.capture.sim import SimulatedRig
@@ -43,7 +44,7 @@ PITCH = 3.45e-6
 NOMINAL = Camera(aperture_m=1.6e-3, sensor_distance_m=16e-3, fixed_focal_length_m=16e-3, lens_powers_dpt=(1.5, 2.5),
                  pixel_pitch_m=PITCH, depth_range_m=(0.3, 1.0), mu_px_per_m=1 / (2 * PITCH), name="nominal")
 TRUE = CameraFile(NOMINAL.replace(mu_px_per_m=1.15 / (2 * PITCH)), magnification_per_dpt=0.004, ecvfl_offset_dpt=0.3)
-DISTANCES = (0.35, 0.45, 0.6, 0.8, 0.95)
+DISTANCES = (0.3, 0.35, 0.45, 0.6, 0.8, 0.95, 1.0)
 
 
 #: the true camera as a calibration would ideally write it (offset folded into f0).
@@ -51,14 +52,14 @@ ORACLE = CameraFile(TRUE.camera.replace(fixed_focal_length_m=1 / (TRUE.camera.fi
                     magnification_per_dpt=TRUE.magnification_per_dpt)
 
 
-def _errors(cal: CameraFile, size: int, seed: int) -> tuple[list[float], list[float]]:
+def _errors(cal: CameraFile, size: int, seed: int, region: int = PREDICTION_REGION_PX) -> tuple[list[float], list[float]]:
     """In-focus power error (dpt) and relative metric depth error of one fresh pair per
-    distance, with camera ``cal``."""
+    distance, with camera ``cal`` (estimator regions of ``region`` px)."""
     out, depth = [], []
     for i, d in enumerate(DISTANCES):
         rig = SimulatedRig(TRUE, d, size=(size, size), seed=1000 * seed + 100 + i)
         (f1, _), (f2, _) = rig.capture(1.5), rig.capture(2.5)
-        p = in_focus_power_from_pair(cal.camera, f1 / 4095, f2 / 4095, 1.5, 2.5,
+        p = in_focus_power_from_pair(cal.camera, f1 / 4095, f2 / 4095, 1.5, 2.5, region=region,
                                      magnification_per_dpt=cal.magnification_per_dpt)
         out.append(p - rig.in_focus_command_dpt())
         depth.append(1.0 / (p + cal.camera.fixed_power_dpt - 1.0 / cal.camera.sensor_distance_m) / d - 1.0)
@@ -73,6 +74,10 @@ def run(seeds: int, size: int) -> list[dict]:
         rows.append({"seed": seed, "route": "oracle (true camera)", "k_err": 0.0, "m": 0.004, "offset": float("nan"),
                      "errs": errs, "depth_errs": derr, "time_s": 0.0})
         print(f"seed {seed} oracle          in-focus errors {np.round(errs, 4).tolist()}", flush=True)
+        errs64, derr64 = _errors(ORACLE, size, seed, region=64)
+        rows.append({"seed": seed, "route": "oracle, 64-px regions", "k_err": 0.0, "m": 0.004, "offset": float("nan"),
+                     "errs": errs64, "depth_errs": derr64, "time_s": 0.0})
+        print(f"seed {seed} oracle (64 px)  in-focus errors {np.round(errs64, 4).tolist()}", flush=True)
         with tempfile.TemporaryDirectory() as tmp:
             root = Path(tmp)
             capture_session(SimulatedRig(TRUE, 0.5, size=(size, size), seed=seed), root / "self",
@@ -103,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.ERROR)
     rows = run(args.seeds, args.size)
     table = []
-    for route in ("oracle (true camera)", "self", "known-distance"):
+    for route in ("oracle, 64-px regions", "oracle (true camera)", "self", "known-distance"):
         rs = [r for r in rows if r["route"] == route]
         errs = np.abs(np.array([r["errs"] for r in rs]))
         m_err = np.abs(np.array([r["m"] for r in rs]) / 0.004 - 1)
@@ -120,7 +125,9 @@ def main(argv: list[str] | None = None) -> int:
              f"in-focus power from one pair at {', '.join(map(str, DISTANCES))} m each. Targets (issue 18): "
              "in-focus power within 0.03 dpt, breathing within 10 %. The known-distance route also recovers "
              "the 0.3 dpt ECVFL offset (in-focus offset B); self-calibration takes B from the datasheet and says so (hence its metric depth error: the 0.3 dpt offset it cannot see). "
-             "The oracle row uses the true camera: the estimator's own single-pair error, which no calibration removes.\n")
+             "The oracle rows use the true camera: the estimator's own single-pair error, which no calibration removes; "
+             f"predictions use {PREDICTION_REGION_PX}-px regions (`PREDICTION_REGION_PX`), the first row 64-px regions, "
+             "whose error grows with the pair's larger blur (3.3-3.8 px at 0.8-1.0 m) and misses 0.03 dpt there.\n")
     b = np.array([r["offset"] for r in rows if r["route"] == "known-distance"])
     body += (f"\nIn-focus offset B from the known-distance route (true -0.300 dpt: the 0.3 dpt ECVFL offset): "
              f"median {np.median(b):+.4f}, worst {b[np.argmax(np.abs(b + 0.3))]:+.4f} dpt.\n")

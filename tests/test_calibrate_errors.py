@@ -42,14 +42,16 @@ def test_too_few_sweep_frames(tmp_path) -> None:
 
 def test_known_distance_route_needs_pairs_with_distances(tmp_path) -> None:
     frames = _sweep(tmp_path, [1.5, 1.7, 1.9], pairs=[(1.7, 2.7)])  # distance not recorded
-    with pytest.raises(CalibrationError, match="needs at least one DFD pair.*distance_m"):
+    with pytest.raises(CalibrationError, match="needs at least one DFD pair.*distance_m") as err:
         calibrate_known_distance(frames, CameraFile(REF))
+    assert str(err.value).startswith(f"{tmp_path}: ")  # names the capture folder
 
 
 def test_self_calibration_without_a_sweep(tmp_path) -> None:
     capture_session(SimulatedRig(TRUE, 0.5, size=(128, 128)), tmp_path, pairs=[(1.7, 2.7)], distance_m=0.5)
-    with pytest.raises(CalibrationError, match="needs a focus sweep"):
+    with pytest.raises(CalibrationError, match="needs a focus sweep") as err:
         calibrate_self(read_folder(tmp_path), CameraFile(REF))
+    assert str(err.value).startswith(f"{tmp_path}: ")
 
 
 def test_untextured_scene(tmp_path) -> None:

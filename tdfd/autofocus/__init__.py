@@ -31,6 +31,8 @@ Layers, bottom to top; a module imports only from its own layer or the ones belo
 
    * :mod:`~tdfd.autofocus.estimators`: the shipped ONNX model or the analytic stand-in
      (:mod:`~tdfd.autofocus.threads`: torch threads for it and the bench).
+   * :mod:`~tdfd.autofocus.registered`: breathing registration (a calibrated camera's
+     ``magnification_per_dpt``) in front of an estimator that does not register the pair.
    * :mod:`~tdfd.autofocus.lens_command`: a set-point with read-back, for both plants.
    * :mod:`tdfd.autofocus.sim`: the simulated bench (lens emulator on a pty through the
      real driver, a virtual camera on a simulated clock); its ``__init__`` lists its files.

@@ -41,7 +41,7 @@ from ..camera_file import CameraFile
 from ..capture.folder import CaptureFolderError, CaptureFrame
 from ..errors import InputError
 from .focus import focus_measure, region_grid, symmetric_peak
-from .measure import PairMeasurement, measure_pair
+from .measure import PREDICTION_REGION_PX, PairMeasurement, measure_pair
 from .registration import fit_magnification_per_dpt, relative_magnification
 
 __all__ = ["CalibrationError", "Scene", "CalibrationResult", "group_scenes", "estimate_breathing",
@@ -133,6 +133,12 @@ class CalibrationResult:
                 "in_focus_offset_dpt": self.in_focus_offset_dpt, "in_focus_offset_source": self.offset_source,
                 "magnification_per_dpt": self.magnification_per_dpt,
                 "residual_rms_dpt": rms, "counts": {k: int(len(v)) for k, v in self.residuals_dpt.items()}}
+
+
+def _where(frames: Sequence[CaptureFrame]) -> str:
+    """The capture folder(s) of ``frames``, for messages."""
+    folders = sorted({str(f.path.parent) for f in frames})
+    return ", ".join(folders) if folders else "no frames"
 
 
 # ---------------------------------------------------------------------------- breathing
@@ -264,14 +270,17 @@ def calibrate_known_distance(frames: Sequence[CaptureFrame], nominal: CameraFile
     """
     scenes = [s for s in group_scenes(frames) if s.distance_m is not None and s.pairs]
     if not scenes:
-        raise CalibrationError("the known-distance route needs at least one DFD pair (frames with a 'pair' tag) "
-                               "whose sidecars give distance_m; none found")
+        raise CalibrationError(f"{_where(frames)}: the known-distance route needs at least one DFD pair (frames with "
+                               "a 'pair' tag) whose sidecars give distance_m; none found")
     m, breath = estimate_breathing(scenes, region, nominal.camera)
     rows = []  # (pa, pb, d, D, name)
     meas: list[PairMeasurement] = []
     for s in scenes:
         for a, b in s.pairs:
-            pm = measure_pair(nominal.camera, a.image, b.image, a.power_dpt, b.power_dpt, region, m, (a.name, b.name))
+            # a planar target: large regions (PREDICTION_REGION_PX), whose D the larger blur does not bias
+            big = PREDICTION_REGION_PX if min(a.shape) >= PREDICTION_REGION_PX else region
+            pm = measure_pair(nominal.camera, a.image, b.image, a.power_dpt, b.power_dpt, max(region, big), m,
+                              (a.name, b.name))
             c = pm.confidence
             sel = c >= min_confidence * c.max()
             rows.append((a.power_dpt, b.power_dpt, s.distance_m, float(np.median(pm.square_difference[sel])), a.name))
@@ -283,7 +292,7 @@ def calibrate_known_distance(frames: Sequence[CaptureFrame], nominal: CameraFile
         design = np.stack([pa + pb - 2 / d, -2 * np.ones_like(d)], 1)
         (a2, a2b), *_ = np.linalg.lstsq(design, y, rcond=None)
         if a2 <= 0:
-            raise CalibrationError(f"the pairs give K^2 = {a2:.4g} <= 0: measurements disagree with the thin-lens model")
+            raise CalibrationError(f"{_where(frames)}: the pairs give K^2 = {a2:.4g} <= 0: measurements disagree with the thin-lens model")
         b_fit = float(a2b / a2)
         source = f"fitted from known distances {', '.join(f'{v:g}' for v in distances)} m"
     else:
@@ -291,7 +300,7 @@ def calibrate_known_distance(frames: Sequence[CaptureFrame], nominal: CameraFile
         x = pa + pb - 2 * (1 / d + b_fit)
         a2 = float(np.sum(x * y) / np.sum(x * x))
         if not a2 > 0:
-            raise CalibrationError(f"the pairs give K^2 = {a2:.4g} <= 0 (pair centred on focus?)")
+            raise CalibrationError(f"{_where(frames)}: the pairs give K^2 = {a2:.4g} <= 0 (pair centred on focus?)")
         source = f"datasheet (nominal camera): one known distance ({distances[0]:g} m) fits mu only"
     k = math.sqrt(a2)
     model = a2 * (pa + pb - 2 * (1 / d + b_fit))
@@ -318,7 +327,8 @@ def calibrate_self(frames: Sequence[CaptureFrame], nominal: CameraFile, region: 
     """
     scenes = [s for s in group_scenes(frames) if s.sweep]
     if not scenes:
-        raise CalibrationError("self-calibration needs a focus sweep (frames without a 'pair' tag); none found")
+        raise CalibrationError(f"{_where(frames)}: self-calibration needs a focus sweep (frames without a 'pair' tag); "
+                               "none found")
     m, breath = estimate_breathing(scenes, region, nominal.camera)
     cam = nominal.camera
     k_nom = cam.mu_px_per_m * cam.blur_scale_m_dpt
@@ -349,17 +359,17 @@ def calibrate_self(frames: Sequence[CaptureFrame], nominal: CameraFile, region: 
             if s2 == si and conf[i, j] >= min_confidence * conf.max() and np.isfinite(dsq[i, j]):
                 obs.append((col, pa, pb, float(dsq[i, j])))
     if not obs:
-        raise CalibrationError("no DFD pair of the swept scenes gives a usable blur measurement: capture pairs of the "
-                               "same scene (--pair) or a finer sweep")
+        raise CalibrationError(f"{_where(frames)}: no DFD pair of the swept scenes gives a usable blur measurement: "
+                               "capture pairs of the same scene (--pair) or a finer sweep")
     col = np.array([o[0] for o in obs])
     pa, pb, dsq = (np.array([o[i] for o in obs], dtype=np.float64) for i in (1, 2, 3))
     theta = np.concatenate([[0.0], init])
     x = (pa - pb) * (pa + pb - 2 * theta[col])
     if np.sum(x * x) <= 0:
-        raise CalibrationError("the pairs are all centred on focus: no blur difference to fit")
+        raise CalibrationError(f"{_where(frames)}: the pairs are all centred on focus: no blur difference to fit")
     theta[0] = float(np.sum(x * dsq) / np.sum(x * x))
     if not theta[0] > 0:
-        raise CalibrationError(f"the pairs give K^2 = {theta[0]:.4g} <= 0: the measurements disagree with the sweep")
+        raise CalibrationError(f"{_where(frames)}: the pairs give K^2 = {theta[0]:.4g} <= 0: the measurements disagree with the sweep")
     n_p = len(init)
     peaks0 = np.array(init)
     keep = np.ones(len(obs), bool)
@@ -389,7 +399,7 @@ def calibrate_self(frames: Sequence[CaptureFrame], nominal: CameraFile, region: 
         log.info("self-calibration: %d of %d pair measurements dropped as outliers", int((~keep).sum()), len(keep))
     a2 = theta[0]
     if not a2 > 0:
-        raise CalibrationError(f"the joint fit gives K^2 = {a2:.4g} <= 0")
+        raise CalibrationError(f"{_where(frames)}: the joint fit gives K^2 = {a2:.4g} <= 0")
     k = math.sqrt(a2)
     r_pairs = ((dsq - a2 * (pa - pb) * (pa + pb - 2 * theta[col])) / (2 * a2 * np.abs(pa - pb)))[keep]
     r_peaks = theta[1:] - peaks0

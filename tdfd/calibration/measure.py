@@ -19,7 +19,11 @@ from ..breathing import register_to_power
 from ..camera import Camera
 from ..dfd import FourierRatioDFD
 
-__all__ = ["PairMeasurement", "measure_pair", "in_focus_power_from_pair"]
+__all__ = ["PairMeasurement", "measure_pair", "in_focus_power_from_pair", "PREDICTION_REGION_PX"]
+
+#: region side (px) of :func:`in_focus_power_from_pair`: large blur needs large windows
+#: (the Hann window's leakage fills the high frequencies a blurred frame lacks).
+PREDICTION_REGION_PX = 128
 
 
 @dataclass(frozen=True)
@@ -59,7 +63,7 @@ def measure_pair(camera: Camera, image_a: np.ndarray, image_b: np.ndarray, power
 
 
 def in_focus_power_from_pair(camera: Camera, image_1: np.ndarray, image_2: np.ndarray, power_1: float,
-                             power_2: float, region: int = 64, magnification_per_dpt: float = 0.0,
+                             power_2: float, region: int = PREDICTION_REGION_PX, magnification_per_dpt: float = 0.0,
                              min_confidence: float = 0.5) -> float:
     """The ECVFL power that focuses a (planar) scene, from one pair, with a calibrated camera.
 
@@ -67,6 +71,11 @@ def in_focus_power_from_pair(camera: Camera, image_1: np.ndarray, image_2: np.nd
     eqs. 5, 6, 13) becomes an in-focus power ``1/d_o + 1/d_s - 1/f0``; the median over
     regions whose confidence is at least ``min_confidence`` times the best region's is
     returned, dioptres.
+
+    Regions are :data:`PREDICTION_REGION_PX` (128 px) by default: with 64-px regions the
+    estimator's error grows with the larger blur of the pair, to 0.03-0.13 dpt when it
+    reaches 3.3-3.8 px (the range ends of docs/BENCHMARKS.md's calibration camera); 128-px
+    regions bring it under 0.02 dpt there (measured, docs/CALIBRATION.md).
     """
     b = register_to_power(image_2, power_2, power_1, magnification_per_dpt) if magnification_per_dpt else image_2
     est = _estimator(camera, power_1, power_2, region)

@@ -46,6 +46,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ...camera import Camera
+from ...camera_file import CameraFile
 from ...errors import InputError
 from ...light.guard import DEFAULT_LIMITS, LightGuard, LightLimits
 from ..assist import AssistedDFDController
@@ -107,6 +108,12 @@ class SimBench:
         evidence_s: time charged per relative-blur measurement of the controller's evidence
             (``None``: calibrated on this machine when the bench opens, 0 with ``compute_s=0``);
             added to the trial's time to focus (every one lies on the path to the declaration).
+        true_camera: the simulated optics when they differ from ``camera`` (a
+            :class:`~tdfd.camera_file.CameraFile`: its camera, ECVFL power offset and focus
+            breathing, as in :mod:`tdfd.capture.sim`). ``camera`` is then what the
+            controllers believe (e.g. a calibrated camera file's), and the record's truth
+            (ideal power, residual blur) is the true camera's at the lens's real power.
+            ``None``: the optics are ``camera``.
     """
 
     def __init__(self, camera: Camera | None = None, estimator: Estimator | None = None,
@@ -116,10 +123,11 @@ class SimBench:
                  faults: Any | None = None, driver_timeout_s: float = 0.1, controller: dict | None = None,
                  contrast: dict | None = None, texture_families: Sequence[str] | None = None,
                  light: Any | None = None, light_limits: LightLimits = DEFAULT_LIMITS,
-                 evidence_s: float | None = None) -> None:
+                 evidence_s: float | None = None, true_camera: CameraFile | None = None) -> None:
         if camera is None:
             camera = estimator.camera if estimator is not None else Camera.preset("reference")
         self.camera, self.estimator = camera, estimator
+        self.true_camera = true_camera if true_camera is not None else CameraFile(camera)
         self.readout_hw = (int(readout_hw[0]), int(readout_hw[1]))
         self.roi = (roi or Roi.centre(self.readout_hw)).clip(self.readout_hw)
         self.timing, self.noise, self.settle_s, self.compute_s = timing, noise, float(settle_s), compute_s
@@ -233,8 +241,10 @@ class SimBench:
     def _plant(self, scene: Scene, halt_at_s: float | None = None,
                on_time: Callable[[float], None] | None = None) -> BenchPlant:
         assert self.lens is not None
-        cam = VirtualCamera(self.camera, scene, self.lens.optical_power_at, self.timing, self.noise, self.rng, psf=self.psf,
-                            light=self.light)
+        tc = self.true_camera
+        cam = VirtualCamera(tc.camera, scene, self.lens.optical_power_at, self.timing, self.noise, self.rng, psf=self.psf,
+                            light=self.light, power_offset_dpt=tc.ecvfl_offset_dpt,
+                            magnification_per_dpt=tc.magnification_per_dpt)
         return BenchPlant(self.clock, self.lens, cam, self.estimator, self.compute_charge_s, halt_at_s=halt_at_s,
                           on_time=on_time, light_guard=self.light_guard)
 
@@ -282,10 +292,11 @@ class SimBench:
         from ...optics.thin_lens import camera_blur_radii_px
 
         assert self.lens is not None
-        ideal = self.camera.in_focus_power_dpt(target)
+        true, offset = self.true_camera.camera, self.true_camera.ecvfl_offset_dpt
+        ideal = true.in_focus_power_dpt(target) - offset  # the command that focuses the target
         t_end = result.t_focus_s if result.t_focus_s is not None else self.clock.now()
         final = self.lens.optical_power_at(t_end)
-        resid = abs(float(camera_blur_radii_px(self.camera, target, final)))
+        resid = abs(float(camera_blur_radii_px(true, target, final + offset)))
         t0 = result.t_start_s if result.t_start_s is not None else t_end
         reason = (result.error or result.fallback_reason) if result.status != "focused" else result.fallback_reason
         if result.status == "focused" and result.error:  # e.g. clamped to the lens range
@@ -304,7 +315,7 @@ class SimBench:
             uncertainty_px=result.uncertainty_px, refine_count=result.refine_count, psf=str(self.psf),
             blur_measurements=result.blur_measurements,
             dfd_blur_px=None if result.dfd_power_dpt is None else
-            abs(float(camera_blur_radii_px(self.camera, target, result.dfd_power_dpt))))
+            abs(float(camera_blur_radii_px(true, target, result.dfd_power_dpt + offset))))
 
     def run_trials(self, depths: Sequence[float], methods: Sequence[str] = ("dfd",), uniform: bool = False,
                    progress: Callable[[TrialRecord], None] | None = None, **controller: Any) -> list[TrialRecord]:
@@ -362,5 +373,6 @@ class SimBench:
         for start, optical, tag in plant.frames:
             d = schedule(start - t0)
             rows.append({"t_s": start - t0, "tag": tag, "target_depth_m": d,
-                         "residual_blur_px": abs(float(camera_blur_radii_px(self.camera, d, optical)))})
+                         "residual_blur_px": abs(float(camera_blur_radii_px(
+                             self.true_camera.camera, d, optical + self.true_camera.ecvfl_offset_dpt)))})
         return result, rows

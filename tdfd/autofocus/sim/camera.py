@@ -7,6 +7,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from ...breathing import magnify
 from ...camera import Camera
 from ..threads import torch_threads
 from .noise import SensorNoise
@@ -33,13 +34,20 @@ class VirtualCamera:
         light: a :class:`~tdfd.light.simulated.SimulatedLight` lighting the scene while it
             is on (the scene image is then the albedo, :meth:`SimulatedLight.radiance`);
             ``None``: the scene as it is.
+        power_offset_dpt: the ECVFL's real power minus the power ``power_at`` reports (a
+            lens whose power differs from its datasheet, :mod:`tdfd.capture.sim`); the
+            frame is rendered at the real power.
+        magnification_per_dpt: focus breathing: each render is magnified by ``1 + m P``
+            (``P`` the real power) about the frame centre (:func:`tdfd.breathing.magnify`).
     """
 
     def __init__(self, camera: Camera, scene: Scene, power_at: Callable[[float], float],
                  timing: CameraTiming = CameraTiming(), noise: SensorNoise = SensorNoise(),
                  rng: np.random.Generator | None = None, psf: Any = "gaussian", mu: float | None = None,
-                 threads: int | None = 1, light: Any | None = None) -> None:
+                 threads: int | None = 1, light: Any | None = None, power_offset_dpt: float = 0.0,
+                 magnification_per_dpt: float = 0.0) -> None:
         self.camera, self.scene, self.power_at = camera, scene, power_at
+        self.power_offset_dpt, self.magnification_per_dpt = float(power_offset_dpt), float(magnification_per_dpt)
         self.timing, self.noise = timing, noise
         self.rng = rng if rng is not None else np.random.default_rng(0)
         self.psf, self.mu, self.threads = psf, mu, threads
@@ -67,12 +75,16 @@ class VirtualCamera:
         from ...optics.render import render_at_power
 
         sharp, depth = self._tensors()
-        p = torch.tensor(list(powers_dpt), dtype=torch.float32)
+        real = [float(v) + self.power_offset_dpt for v in powers_dpt]
+        p = torch.tensor(real, dtype=torch.float32)
         with torch.no_grad(), torch_threads(self.threads):
             out = render_at_power(self.camera, sharp.expand(len(p), -1, -1, -1), depth.expand(len(p), -1, -1, -1),
                                   p, shape=self.psf, mu=self.mu)
-            out = out[0, 0] if len(p) == 1 else out.mean(0)[0]
-        return out.numpy().astype(np.float64)
+            if not self.magnification_per_dpt:
+                out = out[0, 0] if len(p) == 1 else out.mean(0)[0]
+                return out.numpy().astype(np.float64)
+        frames = [magnify(o.numpy().astype(np.float64), 1.0 + self.magnification_per_dpt * q) for o, q in zip(out[:, 0], real)]
+        return frames[0] if len(frames) == 1 else np.mean(frames, axis=0)
 
     def expose(self, t_start_s: float) -> tuple[np.ndarray, float]:
         """Expose from ``t_start_s`` for ``timing.exposure_s``.
