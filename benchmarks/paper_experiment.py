@@ -227,7 +227,8 @@ def main(argv: list[str] | None = None) -> None:
     refine = onnx_refiner(args.model) if args.model.exists() else None
     results["reference camera"] = run_camera(ref, (512, 512), tile=512, max_bin=64, seed=args.seed + 1,
                                              repeats=args.repeats, refine=refine, optics=args.optics)
-    plot(results, FIGURE)
+    if not args.no_write:  # --no-write leaves docs/ (the figure included) alone
+        plot(results, FIGURE)
     sections = []
     for cam_name, res in results.items():
         mu = res["mu"][0.0][0]
