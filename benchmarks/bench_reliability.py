@@ -4,6 +4,7 @@ Run from the repository root:
 
     .venv/bin/python -m benchmarks.bench_reliability                      # 5 seeds x 200 targets
     .venv/bin/python -m benchmarks.bench_reliability --trials 20 --no-doc  # a smoke run
+    .venv/bin/python -m benchmarks.bench_reliability --jobs 4             # 4 worker processes, same records
 
 Five seeds of 200 targets (stratified, uniform in inverse depth across 0.3-1.0 m); every
 texture family of ``tdfd.autofocus.sim.BENCH_TEXTURE_FAMILIES``; half the targets of each
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import multiprocessing
 import statistics
 import sys
 import time
@@ -69,21 +71,45 @@ def _dist_bin(r: Any) -> str:
     return "outside"
 
 
+def _run_unit(unit: tuple, estimator: Any = None) -> tuple[list, list]:
+    """One seed's trials through one PSF (even trials Gaussian, odd pillbox) on its own bench:
+    ``(dfd_records, contrast_records)``. Self-contained (its own seeded bench), so units run in
+    any order or in parallel give the same records."""
+    from tdfd.autofocus.estimators import load_estimator
+    from tdfd.autofocus.sim import SimBench, trial_depths
+
+    seed, k, trials, n_contrast, model, charge, evidence = unit
+    est = estimator if estimator is not None else load_estimator(model)
+    dfd, con = [], []
+    with SimBench(estimator=est, seed=seed, psf=PSFS[k], compute_s=charge, evidence_s=evidence) as bench:
+        for i, d in enumerate(trial_depths(trials, seed)):
+            if i % len(PSFS) != k:
+                continue
+            dfd.append(bench.run_trial(d, "dfd", trial=seed * 10000 + i))
+            if i < n_contrast:
+                con.append(bench.run_trial(d, "contrast", trial=seed * 10000 + i))
+    return dfd, con
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", default="0,1,2,3,4", help="comma-separated seeds (default 0-4)")
     ap.add_argument("--trials", type=int, default=200, help="targets per seed (default 200)")
     ap.add_argument("--contrast", type=int, default=40, help="targets per seed that contrast AF also runs (default 40)")
     ap.add_argument("--model", default=None, help="ONNX file or 'analytic' (default: the shipped model)")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="worker processes, one seed and PSF each (same records as 1; default 1)")
     ap.add_argument("--no-doc", action="store_true", help="do not write docs/BENCHMARKS.md")
     args = ap.parse_args(argv)
+    if args.jobs < 1:
+        ap.error(f"--jobs must be at least 1, got {args.jobs}")
     logging.basicConfig(level=logging.ERROR, format="%(levelname)s %(name)s: %(message)s")
 
     from tqdm import tqdm
 
     from tdfd.autofocus.estimators import OnnxEstimator, load_estimator
     from tdfd.autofocus.report import write_report
-    from tdfd.autofocus.sim import SimBench, trial_depths
+    from tdfd.autofocus.sim import SimBench
 
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     est = load_estimator(args.model)
@@ -91,26 +117,27 @@ def main(argv: list[str] | None = None) -> int:
                 else f"{est.backend} (STAND-IN: the shipped model was not available)")
     print(f"estimator: {est_name}")
     t_wall = time.perf_counter()
+    with SimBench(estimator=est, seed=seeds[0], compute_s="calibrated") as bench:  # one charge for every unit
+        charge, evidence = float(bench.compute_charge_s), float(bench.evidence_charge_s or 0.0)
+    units = [(seed, k, args.trials, args.contrast, args.model, charge, evidence)
+             for seed in seeds for k in range(len(PSFS))]
     dfd: list = []
     con: list = []
-    charge: float | None = None
     bar = tqdm(total=len(seeds) * (args.trials + min(args.contrast, args.trials)), desc="reliability", unit="trial",
                file=sys.stderr, disable=None)
-    for seed in seeds:
-        depths = trial_depths(args.trials, seed)
-        for k, psf in enumerate(PSFS):
-            with SimBench(estimator=est, seed=seed, psf=psf,
-                          compute_s="calibrated" if charge is None else charge) as bench:
-                if charge is None:
-                    charge = float(bench.compute_charge_s)
-                for i, d in enumerate(depths):
-                    if i % len(PSFS) != k:
-                        continue
-                    dfd.append(bench.run_trial(d, "dfd", trial=seed * 10000 + i))
-                    bar.update(1)
-                    if i < args.contrast:
-                        con.append(bench.run_trial(d, "contrast", trial=seed * 10000 + i))
-                        bar.update(1)
+    if args.jobs > 1:
+        with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
+            results = pool.imap(_run_unit, units)  # in unit order: the records come out as a sequential run's
+            for d, c in results:
+                dfd += d
+                con += c
+                bar.update(len(d) + len(c))
+    else:
+        for unit in units:
+            d, c = _run_unit(unit, est)
+            dfd += d
+            con += c
+            bar.update(len(d) + len(c))
     bar.close()
     wall = time.perf_counter() - t_wall
     OUT.mkdir(parents=True, exist_ok=True)
@@ -156,7 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     print(overall, fam, dist, text, sep="\n\n")
     print("\n".join(notes) if notes else "every DFD trial ended in focus")
     body = f"""
-Estimator: {est_name}, charged {charge * 1e3 if charge is not None else float('nan'):.1f} ms per estimate.
+Estimator: {est_name}, charged {charge * 1e3:.1f} ms per estimate and
+{evidence * 1e3:.1f} ms per relative-blur measurement of the controller's evidence (median wall times on this machine).
 {n} targets: seeds {', '.join(map(str, seeds))} of {args.trials} targets each (stratified, uniform in inverse
 depth across 0.3-1.0 m), each a textured plane from every texture family of the bench
 (`tdfd.autofocus.sim.BENCH_TEXTURE_FAMILIES`), with sensor noise; the even trials of each
