@@ -12,7 +12,10 @@ seed (the even trials) through Gaussian optics, the other half through a pillbox
 disk); sensor noise on. The DFD controller as shipped (shipped ONNX model, focus declared
 only on its own evidence: the estimate's uncertainty, a verification frame, or the 3-frame
 estimate of the model and that frame together, then a further DFD step, then a contrast search). Contrast-detect AF runs on a subset (``--contrast``
-targets per seed) for the frame ratio. Prints the tables, writes ``out/autofocus/reliability.json``
+targets per seed) for the frame ratio. A table of causes says where the frames go: every
+trial not in focus within 3 frames by its first cause (low model confidence, failed
+verification and why, a declaration out of focus); the bench time of the trials in focus
+within 3 frames is split by the evidence that declared them. Prints the tables, writes ``out/autofocus/reliability.json``
 (CONTRACT.md section 3 plus the declaration fields) and the ``reliability`` section of
 docs/BENCHMARKS.md.
 """
@@ -62,6 +65,47 @@ HEADER = ["group", "targets", "in focus (blur < 1 px)", "in focus with <= 3 fram
 def _groups(recs: list, key: Callable[[Any], str]) -> list[list[str]]:
     keys = sorted({key(r) for r in recs})
     return [_row(k, [r for r in recs if key(r) == k]) for k in keys]
+
+
+#: why a DFD trial was not in focus within 3 frames, from its record (first match wins)
+CAUSES = (
+    ("declared out of focus", lambda r: r.declared_out_of_focus),
+    ("texture-less ROI: contrast search", lambda r: "texture-less target" in (r.reason or "")),
+    ("model confidence too low: contrast search", lambda r: r.verified is None and "DFD confidence" in (r.reason or "")),
+    ("verification: the reference frames disagree", lambda r: "reference frames disagree" in (r.reason or "")),
+    ("verification failed, model too uncertain (> 1 px) for the 3-frame estimate",
+     lambda r: "verification failed" in (r.reason or "") and (r.uncertainty_px or 0.0) > 1.0),
+    ("verification failed, model and verification frame disagree (or combined too uncertain)",
+     lambda r: "verification failed" in (r.reason or "")),
+    ("verification failed, the DFD step after it verified (4 frames)",
+     lambda r: r.evidence == "verification" and r.refine_count > 0),
+    ("other", lambda r: True),
+)
+
+
+def _cause(r: Any) -> str:
+    return next(name for name, test in CAUSES if test(r))
+
+
+def _cause_rows(recs: list) -> list[list[str]]:
+    """One row per cause of a DFD trial not in focus within 3 frames: how many, how many of them
+    had a right first estimate (blur < 1 px at the model's power), and the families and PSFs."""
+    slow = [r for r in recs if not (r.in_focus and r.frames <= 3)]
+    rows = []
+    for name, _ in CAUSES:
+        group = [r for r in slow if _cause(r) == name]
+        if not group:
+            continue
+        judged = [r for r in group if r.dfd_blur_px is not None]
+        right = f"{sum(1 for r in judged if r.dfd_blur_px < 1.0)} of {len(judged)}" if judged else "- (no estimate used)"
+        fams = sorted({r.scene for r in group}, key=lambda f: -sum(1 for r in group if r.scene == f))
+        fam = ", ".join(f"{f} {sum(1 for r in group if r.scene == f)}" for f in fams)
+        psf = ", ".join(f"{p} {sum(1 for r in group if r.psf == p)}" for p in PSFS)
+        rows.append([name, str(len(group)), right, fam, psf])
+    return rows
+
+
+CAUSE_HEADER = ["cause", "trials", "first DFD estimate right (blur < 1 px)", "texture families", "PSF"]
 
 
 def _dist_bin(r: Any) -> str:
@@ -162,6 +206,7 @@ def main(argv: list[str] | None = None) -> int:
                              + [_row("contrast AF (subset)", con)])
     fam = markdown_table(HEADER, _groups(dfd, lambda r: r.scene))
     dist = markdown_table(HEADER, _groups(dfd, _dist_bin))
+    causes = markdown_table(CAUSE_HEADER, _cause_rows(dfd) or [["none", "0", "-", "-", "-"]])
     checks = [
         f"- At least 99 % end in focus: **{100 * ok / n:.1f} %** ({ok}/{n}; {'met' if ok >= 0.99 * n else 'NOT met'}).",
         f"- At least 97 % in focus with at most 3 frames: **{100 * ok3 / n:.1f} %** ({ok3}/{n}; "
@@ -175,12 +220,20 @@ def main(argv: list[str] | None = None) -> int:
         f"mean {fd_mean:.2f} vs {fc_mean:.2f}, {fc_mean / fd_mean:.2f}x (DFD mean over all {n}: {fd_all:.2f}). "
         f"Contrast AF: {c_ok}/{len(con)} in focus, {c_bad} declared out of focus.",
     ]
+    timing = []
+    for ev_name, label in (("uncertainty", "2 frames on the uncertainty"), ("verification", "a verification frame"),
+                           ("refined", "the 3-frame estimate (a further lens move)")):
+        t = [r.time_ms for r in dfd if r.in_focus and r.frames <= 3 and r.evidence == ev_name and r.time_ms is not None]
+        if t:
+            timing.append(f"{label} median {statistics.median(t):.1f} / max {max(t):.1f} ms ({len(t)})")
+    checks.append("- Bench time to focus of the trials in focus within 3 frames, by evidence (each relative-blur "
+                  f"measurement charged {evidence * 1e3:.1f} ms): " + "; ".join(timing) + ".")
     notes = [f"seed {r.trial // 10000} trial {r.trial % 10000} ({r.scene}, {r.psf}, {r.target_depth_m:.3f} m): "
              f"{'DECLARED OUT OF FOCUS' if r.declared_out_of_focus else r.status}, blur {r.residual_blur_px:.2f} px, "
              f"{r.frames} frames, evidence {r.evidence}" + (f"; {r.reason}" if r.reason else "")
              for r in dfd if not r.in_focus]
     text = "\n".join(checks)
-    print(overall, fam, dist, text, sep="\n\n")
+    print(overall, fam, dist, causes, text, sep="\n\n")
     print("\n".join(notes) if notes else "every DFD trial ended in focus")
     body = f"""
 Estimator: {est_name}, charged {charge * 1e3:.1f} ms per estimate and
@@ -223,6 +276,11 @@ Per texture family:
 Per distance:
 
 {dist}
+
+Where the frames go: every DFD trial not in focus within 3 frames, by its first cause (from
+the trial's record: its fall-back reason, the model's uncertainty, its evidence):
+
+{causes}
 
 DFD trials that did not end in focus ({len(notes)}):
 {chr(10).join('- ' + x for x in notes) if notes else '- none'}
