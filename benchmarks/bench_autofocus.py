@@ -247,7 +247,7 @@ arrival when focus was declared on it. Success: residual blur radius |r_b| < 1 p
 when focus is declared.
 
 DFD declares focus only on its own evidence (section `reliability`): the estimate's uncertainty
-(model confidence and tile agreement, at most 0.25 px of blur) together with the DFD pair's own
+(model confidence and tile agreement, at most 0.35 px of blur) together with the DFD pair's own
 relative blur (2 frames), or a verification frame at the model's power, or the 3-frame estimate of the
 model and that frame together with the lens moved to it (3 frames); then a further DFD step, then a
 contrast search. "DFD, always verified" takes the verification frame every time.

@@ -4,6 +4,7 @@ Run from the repository root:
 
     .venv/bin/python -m benchmarks.bench_reliability                      # 5 seeds x 200 targets
     .venv/bin/python -m benchmarks.bench_reliability --trials 20 --no-doc  # a smoke run
+    .venv/bin/python -m benchmarks.bench_reliability --jobs 4             # 4 worker processes, same records
 
 Five seeds of 200 targets (stratified, uniform in inverse depth across 0.3-1.0 m); every
 texture family of ``tdfd.autofocus.sim.BENCH_TEXTURE_FAMILIES``; half the targets of each
@@ -11,7 +12,10 @@ seed (the even trials) through Gaussian optics, the other half through a pillbox
 disk); sensor noise on. The DFD controller as shipped (shipped ONNX model, focus declared
 only on its own evidence: the estimate's uncertainty, a verification frame, or the 3-frame
 estimate of the model and that frame together, then a further DFD step, then a contrast search). Contrast-detect AF runs on a subset (``--contrast``
-targets per seed) for the frame ratio. Prints the tables, writes ``out/autofocus/reliability.json``
+targets per seed) for the frame ratio. A table of causes says where the frames go: every
+trial not in focus within 3 frames by its first cause (low model confidence, failed
+verification and why, a declaration out of focus); the bench time of the trials in focus
+within 3 frames is split by the evidence that declared them. Prints the tables, writes ``out/autofocus/reliability.json``
 (CONTRACT.md section 3 plus the declaration fields) and the ``reliability`` section of
 docs/BENCHMARKS.md.
 """
@@ -20,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import multiprocessing
 import statistics
 import sys
 import time
@@ -62,11 +67,72 @@ def _groups(recs: list, key: Callable[[Any], str]) -> list[list[str]]:
     return [_row(k, [r for r in recs if key(r) == k]) for k in keys]
 
 
+#: why a DFD trial was not in focus within 3 frames, from its record (first match wins)
+CAUSES = (
+    ("declared out of focus", lambda r: r.declared_out_of_focus),
+    ("texture-less ROI: contrast search", lambda r: "texture-less target" in (r.reason or "")),
+    ("model confidence too low: contrast search", lambda r: r.verified is None and "DFD confidence" in (r.reason or "")),
+    ("verification: the reference frames disagree", lambda r: "reference frames disagree" in (r.reason or "")),
+    ("verification failed, model too uncertain (> 1 px) for the 3-frame estimate",
+     lambda r: "verification failed" in (r.reason or "") and (r.uncertainty_px or 0.0) > 1.0),
+    ("verification failed, model and verification frame disagree (or combined too uncertain)",
+     lambda r: "verification failed" in (r.reason or "")),
+    ("verification failed, the DFD step after it verified (4 frames)",
+     lambda r: r.evidence == "verification" and r.refine_count > 0),
+    ("other", lambda r: True),
+)
+
+
+def _cause(r: Any) -> str:
+    return next(name for name, test in CAUSES if test(r))
+
+
+def _cause_rows(recs: list) -> list[list[str]]:
+    """One row per cause of a DFD trial not in focus within 3 frames: how many, how many of them
+    had a right first estimate (blur < 1 px at the model's power), and the families and PSFs."""
+    slow = [r for r in recs if not (r.in_focus and r.frames <= 3)]
+    rows = []
+    for name, _ in CAUSES:
+        group = [r for r in slow if _cause(r) == name]
+        if not group:
+            continue
+        judged = [r for r in group if r.dfd_blur_px is not None]
+        right = f"{sum(1 for r in judged if r.dfd_blur_px < 1.0)} of {len(judged)}" if judged else "- (no estimate used)"
+        fams = sorted({r.scene for r in group}, key=lambda f: -sum(1 for r in group if r.scene == f))
+        fam = ", ".join(f"{f} {sum(1 for r in group if r.scene == f)}" for f in fams)
+        psf = ", ".join(f"{p} {sum(1 for r in group if r.psf == p)}" for p in PSFS)
+        rows.append([name, str(len(group)), right, fam, psf])
+    return rows
+
+
+CAUSE_HEADER = ["cause", "trials", "first DFD estimate right (blur < 1 px)", "texture families", "PSF"]
+
+
 def _dist_bin(r: Any) -> str:
     for lo, hi in DISTANCE_BINS_M:
         if lo <= r.target_depth_m < hi:
             return f"{lo:.1f}-{min(hi, 1.0):.1f} m"
     return "outside"
+
+
+def _run_unit(unit: tuple, estimator: Any = None) -> tuple[list, list]:
+    """One seed's trials through one PSF (even trials Gaussian, odd pillbox) on its own bench:
+    ``(dfd_records, contrast_records)``. Self-contained (its own seeded bench), so units run in
+    any order or in parallel give the same records."""
+    from tdfd.autofocus.estimators import load_estimator
+    from tdfd.autofocus.sim import SimBench, trial_depths
+
+    seed, k, trials, n_contrast, model, charge, evidence = unit
+    est = estimator if estimator is not None else load_estimator(model)
+    dfd, con = [], []
+    with SimBench(estimator=est, seed=seed, psf=PSFS[k], compute_s=charge, evidence_s=evidence) as bench:
+        for i, d in enumerate(trial_depths(trials, seed)):
+            if i % len(PSFS) != k:
+                continue
+            dfd.append(bench.run_trial(d, "dfd", trial=seed * 10000 + i))
+            if i < n_contrast:
+                con.append(bench.run_trial(d, "contrast", trial=seed * 10000 + i))
+    return dfd, con
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -75,15 +141,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trials", type=int, default=200, help="targets per seed (default 200)")
     ap.add_argument("--contrast", type=int, default=40, help="targets per seed that contrast AF also runs (default 40)")
     ap.add_argument("--model", default=None, help="ONNX file or 'analytic' (default: the shipped model)")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="worker processes, one seed and PSF each (same records as 1; default 1)")
     ap.add_argument("--no-doc", action="store_true", help="do not write docs/BENCHMARKS.md")
     args = ap.parse_args(argv)
+    if args.jobs < 1:
+        ap.error(f"--jobs must be at least 1, got {args.jobs}")
     logging.basicConfig(level=logging.ERROR, format="%(levelname)s %(name)s: %(message)s")
 
     from tqdm import tqdm
 
     from tdfd.autofocus.estimators import OnnxEstimator, load_estimator
     from tdfd.autofocus.report import write_report
-    from tdfd.autofocus.sim import SimBench, trial_depths
+    from tdfd.autofocus.sim import SimBench
 
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     est = load_estimator(args.model)
@@ -91,26 +161,27 @@ def main(argv: list[str] | None = None) -> int:
                 else f"{est.backend} (STAND-IN: the shipped model was not available)")
     print(f"estimator: {est_name}")
     t_wall = time.perf_counter()
+    with SimBench(estimator=est, seed=seeds[0], compute_s="calibrated") as bench:  # one charge for every unit
+        charge, evidence = float(bench.compute_charge_s), float(bench.evidence_charge_s or 0.0)
+    units = [(seed, k, args.trials, args.contrast, args.model, charge, evidence)
+             for seed in seeds for k in range(len(PSFS))]
     dfd: list = []
     con: list = []
-    charge: float | None = None
     bar = tqdm(total=len(seeds) * (args.trials + min(args.contrast, args.trials)), desc="reliability", unit="trial",
                file=sys.stderr, disable=None)
-    for seed in seeds:
-        depths = trial_depths(args.trials, seed)
-        for k, psf in enumerate(PSFS):
-            with SimBench(estimator=est, seed=seed, psf=psf,
-                          compute_s="calibrated" if charge is None else charge) as bench:
-                if charge is None:
-                    charge = float(bench.compute_charge_s)
-                for i, d in enumerate(depths):
-                    if i % len(PSFS) != k:
-                        continue
-                    dfd.append(bench.run_trial(d, "dfd", trial=seed * 10000 + i))
-                    bar.update(1)
-                    if i < args.contrast:
-                        con.append(bench.run_trial(d, "contrast", trial=seed * 10000 + i))
-                        bar.update(1)
+    if args.jobs > 1:
+        with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
+            results = pool.imap(_run_unit, units)  # in unit order: the records come out as a sequential run's
+            for d, c in results:
+                dfd += d
+                con += c
+                bar.update(len(d) + len(c))
+    else:
+        for unit in units:
+            d, c = _run_unit(unit, est)
+            dfd += d
+            con += c
+            bar.update(len(d) + len(c))
     bar.close()
     wall = time.perf_counter() - t_wall
     OUT.mkdir(parents=True, exist_ok=True)
@@ -135,6 +206,7 @@ def main(argv: list[str] | None = None) -> int:
                              + [_row("contrast AF (subset)", con)])
     fam = markdown_table(HEADER, _groups(dfd, lambda r: r.scene))
     dist = markdown_table(HEADER, _groups(dfd, _dist_bin))
+    causes = markdown_table(CAUSE_HEADER, _cause_rows(dfd) or [["none", "0", "-", "-", "-"]])
     checks = [
         f"- At least 99 % end in focus: **{100 * ok / n:.1f} %** ({ok}/{n}; {'met' if ok >= 0.99 * n else 'NOT met'}).",
         f"- At least 97 % in focus with at most 3 frames: **{100 * ok3 / n:.1f} %** ({ok3}/{n}; "
@@ -148,15 +220,24 @@ def main(argv: list[str] | None = None) -> int:
         f"mean {fd_mean:.2f} vs {fc_mean:.2f}, {fc_mean / fd_mean:.2f}x (DFD mean over all {n}: {fd_all:.2f}). "
         f"Contrast AF: {c_ok}/{len(con)} in focus, {c_bad} declared out of focus.",
     ]
+    timing = []
+    for ev_name, label in (("uncertainty", "2 frames on the uncertainty"), ("verification", "a verification frame"),
+                           ("refined", "the 3-frame estimate (a further lens move)")):
+        t = [r.time_ms for r in dfd if r.in_focus and r.frames <= 3 and r.evidence == ev_name and r.time_ms is not None]
+        if t:
+            timing.append(f"{label} median {statistics.median(t):.1f} / max {max(t):.1f} ms ({len(t)})")
+    checks.append("- Bench time to focus of the trials in focus within 3 frames, by evidence (each relative-blur "
+                  f"measurement charged {evidence * 1e3:.1f} ms): " + "; ".join(timing) + ".")
     notes = [f"seed {r.trial // 10000} trial {r.trial % 10000} ({r.scene}, {r.psf}, {r.target_depth_m:.3f} m): "
              f"{'DECLARED OUT OF FOCUS' if r.declared_out_of_focus else r.status}, blur {r.residual_blur_px:.2f} px, "
              f"{r.frames} frames, evidence {r.evidence}" + (f"; {r.reason}" if r.reason else "")
              for r in dfd if not r.in_focus]
     text = "\n".join(checks)
-    print(overall, fam, dist, text, sep="\n\n")
+    print(overall, fam, dist, causes, text, sep="\n\n")
     print("\n".join(notes) if notes else "every DFD trial ended in focus")
     body = f"""
-Estimator: {est_name}, charged {charge * 1e3 if charge is not None else float('nan'):.1f} ms per estimate.
+Estimator: {est_name}, charged {charge * 1e3:.1f} ms per estimate and
+{evidence * 1e3:.1f} ms per relative-blur measurement of the controller's evidence (median wall times on this machine).
 {n} targets: seeds {', '.join(map(str, seeds))} of {args.trials} targets each (stratified, uniform in inverse
 depth across 0.3-1.0 m), each a textured plane from every texture family of the bench
 (`tdfd.autofocus.sim.BENCH_TEXTURE_FAMILIES`), with sensor noise; the even trials of each
@@ -167,7 +248,7 @@ about four times as long per target).
 
 The DFD controller declares focus only on its own evidence (`tdfd.autofocus.evidence`): the
 estimate's uncertainty (the model's predicted error, from its confidence, and the ROI tiles'
-disagreement) maps to at most 0.25 px of blur and the DFD pair's own relative blur (no model)
+disagreement) maps to at most 0.35 px of blur and the DFD pair's own relative blur (no model)
 allows the model's in-focus power (2 frames); or a verification frame at that power
 confirms it (the relative blur between that frame and the DFD pair, measured on the ROI
 without the depth model, gives the focus error; it must be below 0.8 px of blur with two
@@ -195,6 +276,11 @@ Per texture family:
 Per distance:
 
 {dist}
+
+Where the frames go: every DFD trial not in focus within 3 frames, by its first cause (from
+the trial's record: its fall-back reason, the model's uncertainty, its evidence):
+
+{causes}
 
 DFD trials that did not end in focus ({len(notes)}):
 {chr(10).join('- ' + x for x in notes) if notes else '- none'}

@@ -414,6 +414,17 @@ def _conf_for(uncertainty_px: float, depth: float = TRUE_DEPTH, b0: float = 0.01
     return 1.0 / (1.0 + (b / b0) ** 2)
 
 
+def test_uncertainty_gate_declares_at_two_frames_up_to_0_35_px():
+    """A right estimate whose uncertainty is 0.3 px of blur is declared on 2 frames (the gate is
+    0.35 px, tuned on bench seeds 10-12); at 0.45 px it costs a verification frame."""
+    res = drive(DFDController(CAM), FakePlant(TRUE_DEPTH, scripted=(TRUE_DEPTH, _conf_for(0.3))))
+    assert res.uncertainty_px == pytest.approx(0.3, rel=0.01)
+    assert res.status == "focused" and res.evidence == "uncertainty" and res.frames == 2 and res.pair_agrees
+    res = drive(DFDController(CAM), FakePlant(TRUE_DEPTH, scripted=(TRUE_DEPTH, _conf_for(0.45))))
+    assert res.uncertainty_px == pytest.approx(0.45, rel=0.01)
+    assert res.status == "focused" and res.evidence == "verification" and res.frames == 3
+
+
 def test_failed_verification_declares_on_the_three_frame_estimate():
     """A wrong first estimate (1.2 px) with its honest uncertainty: the verification frame and the model
     together put the focus within a pixel, so the lens moves there and focus is declared at 3 frames."""
