@@ -179,3 +179,22 @@ def test_latency_ratio_pairs_rounds():
     assert abs(r["paired"] - 1.1) < 1e-12 and abs(r["median"] - 1.65 / 1.5) < 1e-12
     with pytest.raises(ValueError):
         latency_ratio([], base)
+
+
+# ---------------------------------------------------------------- the two model runners
+def test_onnx_and_torch_runners_give_the_same_depth_and_scale():
+    from benchmarks.depth_models import load_depth_model
+    from benchmarks.report import ROOT
+    from tdfd.optics import render_pair
+
+    torch_model = load_depth_model(ROOT / "models" / "reference")
+    onnx_model = load_depth_model(ROOT / "models" / "reference.onnx")
+    assert (onnx_model.tile, onnx_model.stride) == (torch_model.tile, torch_model.stride)
+    assert onnx_model.confidence_scale == torch_model.confidence_scale
+    g = torch.Generator().manual_seed(5)
+    sharp = (0.4 + 0.2 * torch.rand(1, 1, 128, 192, generator=g, dtype=torch.float64)).clamp(0, 1)
+    i1, i2 = render_pair(REF, sharp, torch.full((1, 1, 128, 192), 0.5, dtype=torch.float64))
+    d_t, c_t, _ = torch_model.run(i1.float(), i2.float())
+    d_o, c_o, _ = onnx_model.run(i1.float(), i2.float())
+    torch.testing.assert_close(d_o, d_t, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(c_o, c_t, rtol=1e-3, atol=1e-4)
