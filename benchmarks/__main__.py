@@ -20,6 +20,8 @@ BENCHMARKS = {
     "synthesis": "benchmarks.bench_synthesis",
     "refinement": "benchmarks.bench_refinement",
     "bound": "benchmarks.bench_bound",
+    "structure": "benchmarks.bench_structure",
+    "uncertainty": "benchmarks.bench_uncertainty",
     "onnx": "benchmarks.bench_onnx",
     "autofocus": "benchmarks.bench_autofocus",
     "assist_light": "benchmarks.bench_assist_light",

@@ -51,6 +51,11 @@ frames' noise levels, ignore clipping of over-exposed highlights, vignetting, br
 misregistration and frame gain jitter, and use no tile-boundary effects. Writes the ``bound``
 section of ``docs/BENCHMARKS.md`` next to the refined model's measured errors on the same
 planes.
+
+Scenes with depth structure: :func:`tile_fisher` gives each tile the information of a
+fronto-parallel plane at its own true depth (interpolated between depth nodes), which
+:mod:`benchmarks.bench_structure` uses as a per-tile reference on slanted planes, smooth
+surfaces and the faces of occlusion layouts away from their edges (its ``structure`` section).
 """
 
 from __future__ import annotations
@@ -79,7 +84,7 @@ from tdfd.sensor import SensorModel
 from training.config import EvalConfig
 from training.losses import depth_relative_error
 
-__all__ = ["plane_information", "plane_fisher", "otf_jacobian", "psf_prior_variance", "depth_variances", "median_at_bound", "otf", "main"]
+__all__ = ["plane_information", "plane_fisher", "tile_fisher", "otf_jacobian", "psf_prior_variance", "depth_variances", "median_at_bound", "otf", "main"]
 
 TILE, STRIDE = 64, 32
 MEDIAN_ABS = 0.6745  # median |x| of a standard normal x
@@ -214,17 +219,18 @@ def plane_fisher(camera: Camera, sharp: torch.Tensor, depth_m: float, params: di
     Returns:
         ``(h, w, P, P)`` for the 64/32 grid's tiles; ``P = 1`` without nuisances, else 6.
     """
-    q = 1.0 / depth_m
-    model = psf_model(params)
+    weight = _tile_weights(sharp, params)
+    return _fisher_at(camera, psf_model(params), 1.0 / depth_m, weight, nuisances, dq)
+
+
+def _tile_weights(sharp: torch.Tensor, params: dict) -> torch.Tensor:
+    """Per tile and bin, ``2 |S(u)|^2 / nu``: ``(h, w, T, T)``, the texture's power over the
+    tile's noise power (the part of :func:`plane_fisher` that does not depend on ``q``)."""
     sensor = SensorModel(full_well_e=params["full_well_e"], read_noise_e=params["read_noise_e"], bits=params["bits"],
                          black_level_dn=params["black_level_dn"], gain=params["gain"], exposure=params["exposure"])
     # output units per unit radiance (slope of the sensor's mean response, far from clipping)
     lo, hi = sensor.expected_mean(torch.tensor([0.0, 1e-3], dtype=torch.float64))
     scale = float(hi - lo) / 1e-3
-    h1, h2, d1, d2 = otf_jacobian(camera, model, q, nuisances, dq)
-    c = d1 * h2 - d2 * h1  # (P, T, T)
-    cross = (c[:, None] * c.conj()[None]).real  # (P, P, T, T)
-    a1, a2 = h1.abs() ** 2, h2.abs() ** 2
     x = sharp.double() * scale
     tiles = x.unfold(0, TILE, STRIDE).unfold(1, TILE, STRIDE)  # (h, w, T, T)
     mean = tiles.mean((-1, -2))
@@ -232,8 +238,74 @@ def plane_fisher(camera: Camera, sharp: torch.Tensor, depth_m: float, params: di
     # frame 2 has the same mean level (blur keeps the mean); the two frames' noise is alike
     spec = torch.fft.fft2(tiles - mean[..., None, None]).abs() ** 2  # |S(u)|^2, DC removed
     nu = (TILE * TILE) * var
-    weight = 2.0 * spec / (nu[..., None, None] * (a1 + a2)).clamp_min(1e-300)
-    return 0.5 * torch.einsum("hwuv,jkuv->hwjk", weight, cross)  # a real tile's spectrum counts each bin twice
+    return 2.0 * spec / nu[..., None, None]
+
+
+def _fisher_at(camera: Camera, model: PSFModel, q: float, weight: torch.Tensor, nuisances: bool, dq: float
+               ) -> torch.Tensor:
+    """:func:`plane_fisher` of every tile as if at inverse depth ``q``, from :func:`_tile_weights`."""
+    h1, h2, d1, d2 = otf_jacobian(camera, model, q, nuisances, dq)
+    c = d1 * h2 - d2 * h1  # (P, T, T)
+    cross = (c[:, None] * c.conj()[None]).real  # (P, P, T, T)
+    inv = 1.0 / (h1.abs() ** 2 + h2.abs() ** 2).clamp_min(1e-300)
+    return 0.5 * torch.einsum("hwuv,jkuv->hwjk", weight, cross * inv)  # a real tile's spectrum counts each bin twice
+
+
+def tile_fisher(camera: Camera, sharp: torch.Tensor, tile_depth_m: torch.Tensor, params: dict, nuisances: bool = True,
+                dq: float = 1e-3, node_step: float = 0.02) -> torch.Tensor:
+    """:func:`plane_fisher` with a depth per tile: each tile as a fronto-parallel plane at its own depth.
+
+    For scenes with depth structure (slanted planes, smooth surfaces, the faces of a
+    piecewise-planar layout away from its edges) this is the information of a tile that is
+    locally fronto-parallel at its true (window-weighted) depth: a reference, not a strict
+    bound, since it leaves out the blur's variation across the tile. To first order the slant
+    is odd about the tile centre and the depth even, so the two decouple and the slant as a
+    nuisance costs little; a curved surface's relief inside the tile is ignored.
+
+    The OTFs depend on ``q = 1/d`` alone, so they are computed on nodes spaced at most
+    ``node_step`` (1/m) over the image's range of ``q`` and each tile's information is
+    interpolated linearly in ``q`` between the two nodes around it (the texture weights, which
+    do not depend on ``q``, are computed once).
+
+    Args:
+        camera, sharp, params, nuisances, dq: as for :func:`plane_fisher`.
+        tile_depth_m: ``(h, w)`` each tile's depth in metres (the 64/32 grid of ``sharp``).
+        node_step: largest spacing of the interpolation nodes in 1/m.
+
+    Returns:
+        ``(h, w, P, P)`` as :func:`plane_fisher`.
+
+    Raises:
+        InputError: ``tile_depth_m`` is not the grid's shape, or not finite and positive.
+    """
+    weight = _tile_weights(sharp, params)
+    if tile_depth_m.shape != weight.shape[:2]:
+        raise InputError(f"tile_depth_m {tuple(tile_depth_m.shape)} does not match the tile grid {tuple(weight.shape[:2])}")
+    if not bool(torch.isfinite(tile_depth_m).all()) or not bool((tile_depth_m > 0).all()):
+        raise InputError("tile_depth_m must be finite and positive")
+    if not node_step > 0:
+        raise InputError(f"node_step must be > 0, got {node_step}")
+    q = 1.0 / tile_depth_m.double()
+    q_lo, q_hi = float(q.min()), float(q.max())
+    n = max(1, math.ceil((q_hi - q_lo) / node_step)) + 1 if q_hi > q_lo else 1
+    nodes = torch.linspace(q_lo, q_hi, n, dtype=torch.float64) if n > 1 else torch.tensor([q_lo], dtype=torch.float64)
+    model = psf_model(params)
+    if n == 1:
+        return _fisher_at(camera, model, q_lo, weight, nuisances, dq)
+    pos = ((q - q_lo) / (q_hi - q_lo) * (n - 1)).clamp(0, n - 1)
+    k = pos.floor().long().clamp(max=n - 2)  # each tile lies between nodes k and k + 1
+    t = (pos - k)[..., None, None]
+    p = 6 if nuisances else 1
+    out = torch.zeros(*q.shape, p, p, dtype=torch.float64)
+    for node in range(n):  # only the tiles next to a node need its information
+        lower, upper = k == node, k == node - 1
+        near = lower | upper
+        if not bool(near.any()):
+            continue
+        f = _fisher_at(camera, model, float(nodes[node]), weight[near][:, None], nuisances, dq)[:, 0]
+        w = torch.where(lower[near][:, None, None], 1.0 - t[near], t[near])
+        out[near] += w * f
+    return out
 
 
 def psf_prior_variance(cfg: SynthConfig, camera: Camera) -> torch.Tensor:

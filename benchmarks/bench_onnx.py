@@ -13,6 +13,14 @@ alternated in blocks of 10 so that load from other processes on the machine hits
 ``--model`` pointing at a file that does not exist, or none given and no shipped model,
 the model is exported first (from ``models/reference.safetensors`` if present, else a
 deterministic untrained stand-in: the timings do not depend on the weights).
+
+With ``--baseline OLD.onnx`` a second ONNX file (e.g. the previously shipped model, kept
+outside ``models/`` with ``git show HEAD:models/reference.onnx > /tmp/old.onnx``) is timed in
+the same run, its blocks alternating with the new model's, and the table gains the ratio
+new / baseline of the medians (and of the 10th percentiles) at each size, against the
+target ratio :data:`TARGET_RATIO`::
+
+    .venv/bin/python -m benchmarks.bench_onnx --model models/reference.onnx --baseline /tmp/old.onnx
 """
 
 from __future__ import annotations
@@ -30,10 +38,36 @@ import numpy as np
 
 from .report import ROOT, markdown_table, update_section
 
-__all__ = ["main", "time_calls"]
+__all__ = ["main", "time_calls", "latency_ratio", "TARGET_RATIO"]
 
 SIZES = ((480, 640), (1200, 1600))
 TARGET_MS = {(480, 640): 5.0, (1200, 1600): 35.0}
+#: largest allowed latency ratio new model / baseline model (issue 19)
+TARGET_RATIO = 1.15
+
+
+def latency_ratio(new: list[float], baseline: list[float], block: int = 10) -> dict[str, float]:
+    """Ratios new / baseline of two models' call times from :func:`time_calls`.
+
+    Returns:
+        ``median``: of the medians; ``p10``: of the 10th percentiles; ``paired``: the median
+        over rounds of the ratio of the two models' block medians in that round (blocks of
+        ``block`` calls, in :func:`time_calls` order): load that drifts slowly over the run
+        cancels in it.
+
+    Example:
+        >>> r = latency_ratio([2.0, 2.0, 4.0, 4.0], [1.0, 1.0, 2.0, 2.0], block=2)
+        >>> r["median"], r["paired"]
+        (2.0, 2.0)
+    """
+    if not new or not baseline:
+        raise ValueError("latency_ratio needs call times of both models")
+    a, b = sorted(new), sorted(baseline)
+    rounds = min(len(new), len(baseline)) // block
+    paired = [statistics.median(new[k * block:(k + 1) * block]) / statistics.median(baseline[k * block:(k + 1) * block])
+              for k in range(rounds)] or [statistics.median(a) / statistics.median(b)]
+    return {"median": statistics.median(a) / statistics.median(b), "p10": a[len(a) // 10] / b[len(b) // 10],
+            "paired": statistics.median(paired)}
 
 
 def time_calls(fns: dict[str, object], repeats: int, warmup: int = 5, block: int = 10) -> dict[str, list[float]]:
@@ -99,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--weights", type=Path, default=ROOT / "models" / "reference.safetensors",
                    help="torch weights the ONNX file was exported from")
     p.add_argument("--repeats", type=int, default=200, help="timed calls per backend at 480x640 (1/4 at 1200x1600)")
+    p.add_argument("--baseline", type=Path, default=None,
+                   help="a second ONNX file (the previously shipped model) timed side by side; reports new / baseline")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--no-torch", action="store_true", help="time ONNX Runtime only")
     p.add_argument("--wait-load", type=float, default=None,
@@ -125,9 +161,12 @@ def main(argv: list[str] | None = None) -> int:
         onnx_path = Path(tempfile.mkdtemp()) / "bench.onnx"
         export_model(model, onnx_path)
         print(f"exported {onnx_path} from {source}")
+    if args.baseline is not None and not args.baseline.is_file():
+        p.error(f"--baseline {args.baseline} is not a file")
     rt = DepthRuntime(onnx_path, threads=args.threads)
     rt1 = DepthRuntime(onnx_path, threads=1)
-    rows, loads = [], []
+    rt0 = DepthRuntime(args.baseline, threads=args.threads) if args.baseline is not None else None
+    rows, loads, ratios = [], [], []
     for h, w in SIZES:
         i1, i2 = realistic_pairs(model.camera, 1, h, w, seed=h)
         a, b = i1.numpy(), i2.numpy()
@@ -142,18 +181,32 @@ def main(argv: list[str] | None = None) -> int:
             waited = wait_for_quiet(args.wait_load, args.wait_max)
             print(f"waited {waited:.0f} s for load < {args.wait_load:g} (now {os.getloadavg()[0]:.2f})")
         loads.append(os.getloadavg()[0])
-        times = time_calls(fns, reps)
+        times = {}
+        if rt0 is not None:
+            # the two models alone, so that each follows the other: a third backend between them
+            # would leave its spinning threads to whichever comes next (an A/A run showed 2x)
+            times = time_calls({"A/B: new model": lambda: rt.run(a, b), "A/B: baseline": lambda: rt0.run(a, b)}, reps)
+        times.update(time_calls(fns, reps))
         for k, ts in times.items():
             ms = sorted(1000 * t for t in ts)
             med, p10, lo = statistics.median(ms), ms[len(ms) // 10], ms[0]
             target = f"{TARGET_MS[(h, w)]:g}" if k == "onnxruntime" else ""
             name = f"onnxruntime {args.threads} threads" if k == "onnxruntime" else (
-                f"torch eager {args.threads} threads" if k == "torch eager" else k)
+                f"torch eager {args.threads} threads" if k == "torch eager" else
+                f"{k}, onnxruntime {args.threads} threads" if k.startswith("A/B") else k)
             rows.append([f"{h}x{w}", name, f"{med:.2f}", f"{p10:.2f}", f"{lo:.2f}", target, len(ms)])
             print(f"{h}x{w} {k:12s} median {med:7.2f} ms  p10 {p10:7.2f}  min {lo:7.2f}  (n={len(ms)})")
+        if rt0 is not None:
+            r = latency_ratio(times["A/B: new model"], times["A/B: baseline"])
+            ratios.append([f"{h}x{w}", f"{r['median']:.3f}", f"{r['paired']:.3f}", f"{r['p10']:.3f}", f"<= {TARGET_RATIO:g}",
+                           "yes" if r["median"] <= TARGET_RATIO else "**no**"])
+            print(f"{h}x{w} new / baseline: median {r['median']:.3f}, paired {r['paired']:.3f}, p10 {r['p10']:.3f}")
     loads.append(os.getloadavg()[0])
     table = markdown_table(["image", "backend", "median ms", "p10 ms", "min ms", "target ms (median)", "calls"], rows)
-    body = (f"Exported model `{onnx_path.relative_to(ROOT) if onnx_path.is_relative_to(ROOT) else onnx_path.name}` "
+    def shown(path: Path) -> str:
+        return str(path.relative_to(ROOT) if path.is_relative_to(ROOT) else path.name)
+
+    body = (f"Exported model `{shown(onnx_path)}` "
             f"(weights: {source}); one DFD pair per call (batch 1), rendered frames. ONNX Runtime "
             f"{args.threads} intra-op threads, graph optimisation `{DEFAULT_OPTIMIZATION}` "
             f"(`tdfd.runtime.DepthRuntime`); torch eager with `torch.set_num_threads({args.threads})`, `no_grad`. "
@@ -163,10 +216,21 @@ def main(argv: list[str] | None = None) -> int:
             f"medians include their interference, which hurts the 2-thread runs most (a thread that loses its core "
             f"stalls the other at every operator); the minimum and 10th percentile approximate an idle machine. "
             f"The 1-thread row shows the single-core cost.")
+    command = "python -m benchmarks.bench_onnx"
+    if rt0 is not None:
+        body += (f"\n\nSide by side with the baseline `{shown(args.baseline)}` (its calls alternate with the new "
+                 f"model's in blocks of 10 in the same run, the two models alone, same frames, {args.threads} threads; "
+                 "the rows *A/B*; the other rows are timed after them, as without a baseline): latency ratio new / "
+                 f"baseline, target <= {TARGET_RATIO:g} (issue 19).\n\n"
+                 + markdown_table(["image", "ratio of medians", "median of per-round ratios", "ratio of 10th percentiles",
+                                   "target (medians)", "met"], ratios)
+                 + "\n\nPer-round ratios compare the two models' blocks of the same round, so that load drifting over "
+                 "the run cancels; with the same file as both models this A/A check reads the noise floor.")
+        command += f" --model {shown(onnx_path)} --baseline {args.baseline}"
     print(body)
     if not args.no_write:
         update_section("onnx_latency", "ONNX Runtime latency of the exported model",
-                       body, "python -m benchmarks.bench_onnx")
+                       body, command)
     return 0
 
 

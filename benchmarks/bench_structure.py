@@ -1,0 +1,239 @@
+"""Depth accuracy on scenes with depth structure: slanted planes, piecewise-planar layouts with occlusion edges, smooth surfaces.
+
+Run from the repository root::
+
+    .venv/bin/python -m benchmarks.bench_structure [--model models/reference] [--scenes 32]
+
+``--model`` is the safetensors stem (torch) or an ``.onnx`` file (ONNX Runtime), see
+:mod:`benchmarks.depth_models`. Scenes: ``data_synth``'s ``slanted``, ``layout`` and
+``smooth`` depth layouts, one row each, 480x640 px, every textured family, ambient light,
+the synthesiser's full realism (sensor noise, random PSF, breathing, misregistration), seed
+:data:`STRUCTURE_SEED`, which no training run or other benchmark uses (training 0,
+validation 1 000 003, the training report 2 000 003, the refinement and bound benchmarks
+31 337 000). Scored on the model's tile grid, over the tiles whose true depth lies in the
+camera's working range:
+
+* median absolute relative depth error per tile (refined, and the analytic stage);
+* the share of tiles at confidence >= 0.5 and their median error;
+* tiles within one tile of an occlusion edge (their 3x3 tile neighbourhood covers a depth
+  discontinuity of the true depth map, :func:`benchmarks.depth_edges.edge_tiles`) apart.
+
+Issue 19's targets (median per tile <= 2 %; at least half of the tiles at confidence >= 0.5
+with a median error <= 1 % there) are judged on the tiles away from edges, and shown for all
+tiles too. With the 64/32 grid it also computes, per tile, the Cramér-Rao reference of
+:func:`benchmarks.bench_bound.tile_fisher` (each tile a fronto-parallel plane at its own true
+depth, the PSF unknown but shared by the image) on the tiles away from edges, and reports the
+ratio of the model's median error to the score of an estimator at that bound. Writes the
+``structure`` section of ``docs/BENCHMARKS.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from benchmarks.bench_bound import (MEDIAN_ABS, STRIDE, TILE, depth_variances, median_at_bound, psf_prior_variance,
+                                    tile_fisher)
+from benchmarks.depth_edges import EDGE_JUMP, EDGE_RATIO, edge_tiles
+from benchmarks.depth_models import DepthModel, load_depth_model
+from benchmarks.report import ROOT, markdown_table, update_section
+from data_synth import DefocusPairDataset
+from data_synth.params import SynthConfig
+from training.config import TEXTURED_FAMILIES
+
+__all__ = ["STRUCTURE_SEED", "STRUCTURE_LAYOUTS", "structure_dataset", "collect_structure", "summarise_structure",
+           "main"]
+
+#: seed of the structure scenes (no training run or other benchmark uses it)
+STRUCTURE_SEED = 53_000_017
+#: data_synth depth layouts with depth structure, one table row each
+STRUCTURE_LAYOUTS = ("slanted", "layout", "smooth")
+#: the target's confidence threshold
+CONF = 0.5
+
+
+def structure_dataset(model: DepthModel, layout: str, size: tuple[int, int], seed: int = STRUCTURE_SEED,
+                      return_sharp: bool = False) -> DefocusPairDataset:
+    """The benchmark's scenes of one ``layout`` on the model's camera and tile grid."""
+    return DefocusPairDataset(size=size, camera=model.camera, seed=seed, tile=model.tile, stride=model.stride,
+                              layouts={layout: 1.0}, families=TEXTURED_FAMILIES, illumination_prob=0.0,
+                              return_sharp=return_sharp)
+
+
+def collect_structure(model: DepthModel, layout: str, scenes: int, size: tuple[int, int], seed: int = STRUCTURE_SEED,
+                      bound: bool = False, chunk: int = 4) -> dict[str, torch.Tensor]:
+    """Run ``model`` on scenes ``0 .. scenes-1`` of ``layout``; per-tile results, flattened.
+
+    Returns:
+        ``true``, ``refined``, ``analytic`` depths (m), ``confidence``, ``edge`` (bool: within
+        one tile of an occlusion edge), ``scene`` (index); with ``bound``, ``bound_shared`` and
+        ``bound_known``: the relative depth standard deviation of the per-tile reference bound
+        (PSF shared by the image / known; NaN at edge tiles).
+    """
+    ds = structure_dataset(model, layout, size, seed, return_sharp=bound)
+    prior_var = psf_prior_variance(SynthConfig(), model.camera) if bound else None
+    keys = ["true", "refined", "analytic", "confidence", "edge", "scene"] + (["bound_shared", "bound_known"] if bound else [])
+    out: dict[str, list[torch.Tensor]] = {k: [] for k in keys}
+    for start in tqdm(range(0, scenes, chunk), desc=layout, mininterval=10.0):
+        idx = list(range(start, min(scenes, start + chunk)))
+        batch = ds.batch(idx)
+        depth, conf, depth_a = model.run(batch["image_f1"].float(), batch["image_f2"].float())
+        true = batch["tile_depth"].float()
+        if true.shape != depth.shape:
+            raise ValueError(f"model grid {tuple(depth.shape)} differs from the dataset's {tuple(true.shape)}")
+        for k, i in enumerate(idx):
+            edge = edge_tiles(batch["depth"][k, 0], model.tile, model.stride)
+            out["true"].append(true[k, 0].flatten())
+            out["refined"].append(depth[k, 0].flatten())
+            out["analytic"].append(depth_a[k, 0].flatten())
+            out["confidence"].append(conf[k, 0].flatten())
+            out["edge"].append(edge.flatten())
+            out["scene"].append(torch.full((edge.numel(),), i))
+            if bound:
+                fisher = tile_fisher(model.camera, batch["sharp"][k, 0], true[k, 0].double(), batch["params"][k])
+                fisher[edge] = 0.0  # no reference at edges; they teach nothing about the shared PSF either
+                var = depth_variances(fisher, prior_var)
+                for name, key in (("bound_shared", "tile_shared"), ("bound_known", "tile_known")):
+                    rel = var[key].sqrt() * true[k, 0].double()  # std of q / q = relative depth std
+                    out[name].append(torch.where(edge, torch.full_like(rel, math.nan), rel).flatten())
+    return {k: torch.cat(v) for k, v in out.items()}
+
+
+def _rel(depth: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
+    return (depth - true).abs() / true
+
+
+def _median(x: torch.Tensor) -> float:
+    return float(x.median()) if x.numel() else math.nan
+
+
+def summarise_structure(tiles: dict[str, torch.Tensor], depth_range: tuple[float, float]) -> dict[str, dict]:
+    """Figures of one layout (or all): per tile subset (``all``, ``interior`` away from
+    edges, ``edge``) the tile count, the refined and analytic median error, the share of
+    tiles at confidence >= 0.5 and their median error; and the bound comparison if present."""
+    near, far = depth_range
+    t = tiles["true"]
+    keep = (t >= near) & (t <= far)
+    er, ea = _rel(tiles["refined"], t), _rel(tiles["analytic"], t)
+    conf = tiles["confidence"]
+    out: dict[str, dict] = {}
+    for name, sel in (("all", keep), ("interior", keep & ~tiles["edge"]), ("edge", keep & tiles["edge"])):
+        hi = sel & (conf >= CONF)
+        out[name] = {"tiles": int(sel.sum()), "refined": _median(er[sel]), "analytic": _median(ea[sel]),
+                     "share_confident": float(hi.sum()) / max(1, int(sel.sum())), "confident": _median(er[hi])}
+    if "bound_shared" in tiles:
+        sel = keep & ~tiles["edge"] & torch.isfinite(tiles["bound_shared"])
+        if bool(sel.any()):
+            shared, known = tiles["bound_shared"][sel], tiles["bound_known"][sel]
+            out["bound"] = {"tiles": int(sel.sum()), "shared_median": MEDIAN_ABS * float(shared.median()),
+                            "shared_score": median_at_bound(shared), "known_score": median_at_bound(known),
+                            "refined": _median(er[sel])}
+            out["bound"]["ratio"] = out["bound"]["refined"] / out["bound"]["shared_score"]
+    out["edge_share"] = {"value": float((keep & tiles["edge"]).sum()) / max(1, int(keep.sum()))}
+    return out
+
+
+def _pct(x: float) -> str:
+    return "-" if not math.isfinite(x) else f"{100 * x:.2f} %"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--model", default=str(ROOT / "models" / "reference"),
+                   help="model: safetensors stem (torch) or .onnx file (ONNX Runtime)")
+    p.add_argument("--scenes", type=int, default=32, help="scenes per layout")
+    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--width", type=int, default=640)
+    p.add_argument("--no-bound", action="store_true", help="skip the Cramér-Rao reference")
+    p.add_argument("--no-write", action="store_true", help="print only; leave docs/ alone")
+    args = p.parse_args(argv)
+    if args.height < 480 or args.width < 640:
+        p.error("issue 19 scores frames of at least 480x640")
+    torch.set_num_threads(2)
+    model = load_depth_model(args.model)
+    bound = not args.no_bound and (model.tile, model.stride) == (TILE, STRIDE)
+    rng = model.camera.depth_range_m
+    t0 = time.perf_counter()
+    per_layout = {lay: collect_structure(model, lay, args.scenes, (args.height, args.width), bound=bound)
+                  for lay in STRUCTURE_LAYOUTS}
+    wall = time.perf_counter() - t0
+    merged = {k: torch.cat([v[k] for v in per_layout.values()]) for k in next(iter(per_layout.values()))}
+    summary = {lay: summarise_structure(v, rng) for lay, v in per_layout.items()}
+    summary["all layouts"] = summarise_structure(merged, rng)
+    print(json.dumps({"summary": summary, "wall_s": round(wall, 1)}, indent=2))
+    if args.no_write:
+        return 0
+
+    def met(ok: bool) -> str:
+        return "yes" if ok else "**no**"
+
+    rows = []
+    for lay, s in summary.items():
+        for sub, label in (("interior", "away from edges"), ("edge", "near an edge"), ("all", "all tiles")):
+            f = s[sub]
+            rows.append([lay, label, f["tiles"], _pct(f["refined"]), _pct(f["analytic"]),
+                         f"{100 * f['share_confident']:.0f} %", _pct(f["confident"])])
+    targets = []
+    for lay, s in summary.items():
+        for sub, label in (("interior", "away from edges"), ("all", "all tiles")):
+            f = s[sub]
+            targets += [
+                [f"{lay}, {label}: median error per tile", "<= 2 %", _pct(f["refined"]), met(f["refined"] <= 0.02)],
+                [f"{lay}, {label}: tiles at confidence >= 0.5", ">= 50 %", f"{100 * f['share_confident']:.0f} %",
+                 met(f["share_confident"] >= 0.5)],
+                [f"{lay}, {label}: median error at confidence >= 0.5", "<= 1 %", _pct(f["confident"]),
+                 met(f["confident"] <= 0.01)],
+            ]
+    body = (
+        f"Model `{model.name}` on {args.scenes} held-out `data_synth` scenes per layout, {args.height}x{args.width} px "
+        f"(seed {STRUCTURE_SEED}, which no training run or other benchmark uses), every textured family, ambient light, "
+        "the synthesiser's full realism (sensor noise, a random PSF per scene, breathing, misregistration, frame gain "
+        "jitter). Layouts: `slanted` (a tilted plane), `layout` (piecewise-planar: a background and 1-4 objects, "
+        "fronto-parallel or slanted, whose outlines are occlusion edges), `smooth` (a tilted plane plus a smooth relief). "
+        f"Errors: median of |d - d_true| / d_true over the {model.tile}-px tiles (stride {model.stride}) whose true "
+        f"depth lies in {rng[0]:g}-{rng[1]:g} m. *Near an edge*: the tile's 3x3 tile neighbourhood covers a depth "
+        "discontinuity of the true depth map (a step between neighbouring pixels of more than "
+        f"{100 * EDGE_JUMP:g} % in inverse depth and {EDGE_RATIO:g}x the steps two pixels before and after it, "
+        "`benchmarks/depth_edges.py`); such a tile mixes two surfaces and has no single true depth. "
+        f"Near an edge: {100 * summary['layout']['edge_share']['value']:.0f} % of the `layout` scenes' tiles "
+        f"({100 * summary['slanted']['edge_share']['value']:.0f} % of `slanted`, "
+        f"{100 * summary['smooth']['edge_share']['value']:.0f} % of `smooth`).\n\n"
+        + markdown_table(["layout", "tiles", "count", "refined median", "analytic median", "confidence >= 0.5",
+                          "refined median there"], rows)
+        + "\n\nIssue 19's targets, judged on the tiles away from edges (and shown for all tiles):\n\n"
+        + markdown_table(["requirement", "target", "measured", "met"], targets) + "\n")
+    if bound:
+        brows = [[lay, s["bound"]["tiles"], _pct(s["bound"]["shared_median"]), _pct(s["bound"]["shared_score"]),
+                  _pct(s["bound"]["known_score"]), _pct(s["bound"]["refined"]), f"{s['bound']['ratio']:.2f}x"]
+                 for lay, s in summary.items() if "bound" in s]
+        body += (
+            "\n### Against the information limit\n\n"
+            "Cramér-Rao reference per tile (`benchmarks/bench_bound.py`, `tile_fisher`): each tile away from edges as a "
+            "fronto-parallel plane at its own true depth, with the scene's own texture, PSF and sensor noise, the "
+            "texture unknown, the PSF unknown but shared by the image (learnt from its tiles away from edges) or known. "
+            "It leaves out the blur's variation across a slanted tile (to first order the slant, odd about the tile "
+            "centre, decouples from the depth, even) and a curved surface's relief inside the tile, so it is a "
+            "reference rather than a strict bound; it is exact for fronto-parallel faces. *At the bound*: the median "
+            "error of an unbiased estimator reaching it on every tile (`median_at_bound`); the ratio is the refined "
+            "model's median error on the same tiles over that score (issue 19's target on planes: <= 1.3x).\n\n"
+            + markdown_table(["layout", "tiles", "bound median (PSF shared)", "at the bound (PSF shared)",
+                              "at the bound (PSF known)", "refined, measured", "ratio refined / at-bound"], brows)
+            + "\n\nNot computed: tiles near an occlusion edge (two surfaces, a mixed blur: no tile-local model of "
+            "the kind above holds there).\n")
+    body += f"\nWall time: {wall:.0f} s ({len(STRUCTURE_LAYOUTS) * args.scenes} scenes).\n"
+    cmd = f".venv/bin/python -m benchmarks.bench_structure --scenes {args.scenes}"
+    if Path(args.model).resolve() != (ROOT / "models" / "reference").resolve():
+        cmd += f" --model {args.model}"
+    update_section("structure", "Depth structure: slanted planes, occlusion layouts, smooth surfaces", body, cmd)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,108 @@
+"""One interface for the accuracy benchmarks over a trained model: torch weights or ONNX file.
+
+``--model models/reference`` (the safetensors stem, or ``.safetensors`` / ``.json``) runs the
+torch :class:`~tdfd.model.DFDModel`; ``--model models/reference.onnx`` runs the exported file in
+ONNX Runtime (:meth:`tdfd.runtime.DepthRuntime.run`, the bare session: no pair check), so a
+benchmark scores exactly what ships. Both give the depth and the confidence per tile, and the
+confidence scale ``b0`` that turns a confidence back into the model's predicted error scale
+(:func:`predicted_scale`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from tdfd.autofocus.evidence import relative_error_scale
+from tdfd.contract import MODEL_KEY
+from tdfd.errors import InputError, ModelError
+
+__all__ = ["DepthModel", "load_depth_model", "predicted_scale"]
+
+
+@dataclass
+class DepthModel:
+    """A loaded model as the benchmarks use it.
+
+    Attributes:
+        name: the file name shown in reports.
+        tile, stride: the tile grid (px).
+        confidence_scale: ``b0``, the predicted relative error scale at confidence 0.5.
+        camera: the model's :class:`tdfd.Camera`.
+        run: ``(image_f1, image_f2)`` float32 ``(N, 1, H, W)`` tensors to ``(depth, confidence,
+            depth_analytic)``, each ``(N, 1, h, w)`` float32 tensors.
+    """
+
+    name: str
+    tile: int
+    stride: int
+    confidence_scale: float
+    camera: object
+    run: Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+
+
+def load_depth_model(path: str | Path, threads: int = 2) -> DepthModel:
+    """Load ``path``: an ``.onnx`` file (ONNX Runtime) or a :meth:`tdfd.model.DFDModel.save` stem.
+
+    Raises:
+        ModelError: missing files, or an ONNX file without a positive ``confidence_scale`` in
+            its ``tdfd.model`` metadata.
+    """
+    p = Path(path)
+    if p.suffix == ".onnx":
+        from tdfd.runtime import DepthRuntime
+
+        rt = DepthRuntime(p, threads=threads)
+        meta = rt.metadata.get(MODEL_KEY)
+        b0 = meta.get("confidence_scale") if isinstance(meta, dict) else None
+        if not isinstance(b0, (int, float)) or not b0 > 0:
+            raise ModelError(f"{p} has no positive confidence_scale in its {MODEL_KEY!r} metadata")
+
+        def run_onnx(i1: torch.Tensor, i2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            out = rt.run(np.ascontiguousarray(i1.numpy(), np.float32), np.ascontiguousarray(i2.numpy(), np.float32))
+            return tuple(torch.from_numpy(np.asarray(o)) for o in out)  # type: ignore[return-value]
+
+        return DepthModel(p.name, rt.tile, rt.stride, float(b0), rt.camera, run_onnx)
+
+    from tdfd.model import DFDModel
+
+    torch.set_num_threads(threads)
+    model = DFDModel.load(p).eval()
+
+    def run_torch(i1: torch.Tensor, i2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        with torch.no_grad():
+            return model(i1.float(), i2.float())
+
+    return DepthModel(p.with_suffix("").name if p.suffix in (".safetensors", ".json") else p.name, model.tile,
+                      model.stride, model.confidence_scale, model.camera, run_torch)
+
+
+def predicted_scale(confidence: torch.Tensor, confidence_scale: float) -> torch.Tensor:
+    """The Laplace scale ``b`` of the relative inverse-depth error that a confidence stands for.
+
+    :mod:`tdfd.model.combined` maps the predicted scale to ``conf = 1 / (1 + (b / b0)^2)``;
+    this inverts it, ``b = b0 sqrt(1 / conf - 1)`` (:func:`tdfd.autofocus.evidence.relative_error_scale`,
+    which the autofocus loop uses too). The median of ``|e|`` for that Laplace error is ``b ln 2``.
+
+    Args:
+        confidence: any shape, in [0, 1].
+        confidence_scale: ``b0`` (> 0).
+
+    Returns:
+        ``b``, float64, same shape (0 at confidence 1; huge at confidence 0).
+
+    Raises:
+        InputError: a confidence that is not finite or lies outside [0, 1].
+
+    Example:
+        >>> predicted_scale(torch.tensor([0.5, 0.8]), 0.01)
+        tensor([0.0100, 0.0050], dtype=torch.float64)
+    """
+    c = torch.as_tensor(confidence, dtype=torch.float64)
+    if not bool(torch.isfinite(c).all()) or bool(((c < 0) | (c > 1)).any()):
+        raise InputError("confidence must be finite and in [0, 1]")
+    return torch.from_numpy(np.asarray(relative_error_scale(c.numpy(), confidence_scale), dtype=np.float64))

@@ -1,0 +1,200 @@
+"""Helpers of the issue-19 benchmarks: occlusion-edge tiles, the confidence-to-scale inversion,
+the decile calibration table, the per-tile information bound and the latency ratio."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from benchmarks.bench_bound import plane_fisher, tile_fisher
+from benchmarks.bench_onnx import latency_ratio
+from benchmarks.depth_edges import depth_discontinuities, edge_tiles
+from benchmarks.depth_models import predicted_scale
+from benchmarks.uncertainty import decile_table, laplace_mixture_median
+from tdfd import Camera
+from tdfd.errors import InputError
+from tdfd.model import DFDModel
+
+REF = Camera.preset("reference")
+
+
+# ---------------------------------------------------------------- occlusion edges
+def _ramp(h: int, w: int, q0: float, slope_per_px: float) -> torch.Tensor:
+    """Depth (m) of a plane whose inverse depth rises by ``slope_per_px`` (relative to q0) per column."""
+    x = torch.arange(w, dtype=torch.float64)[None, :].expand(h, w)
+    return 1.0 / (q0 * (1.0 + slope_per_px * x))
+
+
+def test_a_step_flags_exactly_the_tiles_around_it():
+    d = torch.full((128, 320), 0.8, dtype=torch.float64)
+    d[:, 160:] = 0.5  # a near object from column 160 on: pixels 159 | 160
+    # 64-px tiles at stride 32: columns 32j .. 32j + 63; tiles 3 to 5 hold column 159 or 160
+    own = edge_tiles(d, 64, 32, reach=0)
+    assert own.shape == (3, 9)
+    assert own[0].tolist() == [False, False, False, True, True, True, False, False, False]
+    near = edge_tiles(d, 64, 32)  # one tile further on each side
+    assert near[0].tolist() == [False, False, True, True, True, True, True, False, False]
+    assert bool((near == near[0]).all())  # the same in every row of tiles
+
+
+def test_steep_smooth_slopes_are_no_edges_but_a_small_step_on_them_is():
+    # 3 % per pixel: steeper than any data_synth relief, yet smooth
+    d = _ramp(96, 200, 1.2, 0.03)
+    assert not bool(depth_discontinuities(d).any())
+    assert not bool(edge_tiles(d, 64, 32).any())
+    # a curved surface (quadratic in x) is no edge either
+    x = torch.linspace(-1, 1, 200, dtype=torch.float64)
+    curved = (1.0 / (2.0 + 1.5 * x**2))[None].expand(96, 200).clone()
+    assert not bool(depth_discontinuities(curved).any())
+    # a 2 % step on the gentle ramp is one
+    stepped = _ramp(96, 200, 1.2, 0.001)
+    stepped[:, 100:] /= 1.02
+    disc = depth_discontinuities(stepped)
+    assert disc[:, 99:101].all() and int(disc.sum()) == 2 * 96
+    # below the jump threshold it is not
+    small = _ramp(96, 200, 1.2, 0.001)
+    small[:, 100:] /= 1.005
+    assert not bool(depth_discontinuities(small).any())
+
+
+def test_edge_rows_work_along_columns_too_and_bad_maps_are_refused():
+    d = torch.full((200, 64), 0.4, dtype=torch.float64)
+    d[70:, :] = 0.9
+    assert edge_tiles(d, 64, 32, reach=0)[:, 0].tolist() == [False, True, True, False, False]  # rows 69 | 70
+    with pytest.raises(InputError):
+        depth_discontinuities(torch.zeros(8, 8))
+    with pytest.raises(InputError):
+        edge_tiles(torch.ones(32, 32), 64, 32)  # smaller than a tile
+
+
+# ---------------------------------------------------------------- confidence -> scale
+def test_scale_inversion_recovers_the_models_own_log_scale():
+    model = DFDModel(REF, tile=32, stride=32, hidden=8, blocks=1, confidence_scale=0.02)
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for p in model.refine.parameters():  # a head that predicts varied scales
+            p.copy_(0.3 * torch.randn(p.shape, generator=g))
+        feats = torch.randn(2, _in_channels(model), 4, 5, generator=g)
+        q_a = torch.full((2, 1, 4, 5), 2.0)
+        rel = torch.exp(torch.empty(2, 1, 4, 5).uniform_(-6.0, 0.0, generator=g))
+        _, log_scale, conf, _ = model.head(feats, q_a, rel)
+    b = predicted_scale(conf, model.confidence_scale)
+    keep = conf < 0.999  # float32 confidence resolves b only where it is not saturated at 1
+    assert int(keep.sum()) > 10
+    torch.testing.assert_close(b[keep], torch.exp(log_scale.double())[keep], rtol=2e-3, atol=0)
+
+
+def _in_channels(model: DFDModel) -> int:
+    from tdfd.model import num_features
+
+    return num_features(model.analytic.num_rings, model.contexts)
+
+
+def test_scale_inversion_edges_and_errors():
+    b = predicted_scale(torch.tensor([1.0, 0.5, 0.2], dtype=torch.float64), 0.01)
+    assert float(b[0]) == 0.0 and abs(float(b[1]) - 0.01) < 1e-15 and abs(float(b[2]) - 0.02) < 1e-12
+    with pytest.raises(InputError):
+        predicted_scale(torch.tensor([1.2]), 0.01)
+    with pytest.raises(InputError):
+        predicted_scale(torch.tensor([float("nan")]), 0.01)
+
+
+# ---------------------------------------------------------------- decile table
+def test_laplace_mixture_median():
+    assert abs(laplace_mixture_median(torch.tensor([0.02])) - 0.02 * math.log(2)) < 1e-9
+    # an equal mix of b = 1 and b = 3: P(|e| <= m) = 1 - (exp(-m) + exp(-m/3)) / 2 = 1/2
+    m = laplace_mixture_median(torch.tensor([1.0, 3.0]))
+    assert abs(0.5 * (math.exp(-m) + math.exp(-m / 3)) - 0.5) < 1e-9
+    assert laplace_mixture_median(torch.tensor([0.0, 0.0, 1.0])) < 1e-50  # two thirds exact
+    with pytest.raises(InputError):
+        laplace_mixture_median(torch.tensor([]))
+
+
+def _laplace(scale: torch.Tensor, g: torch.Generator) -> torch.Tensor:
+    u = torch.rand(scale.shape, generator=g, dtype=torch.float64) - 0.5
+    return -scale * torch.sign(u) * torch.log1p(-2 * u.abs())
+
+
+def test_decile_table_passes_calibrated_errors_and_catches_overconfidence():
+    g = torch.Generator().manual_seed(0)
+    n = 20_000
+    scale = torch.exp(torch.empty(n, dtype=torch.float64).uniform_(-7, -2, generator=g))
+    conf = 1.0 / (1.0 + (scale / 0.01) ** 2)
+    rows = decile_table(conf, scale, _laplace(scale, g))
+    assert len(rows) == 10 and sum(r["tiles"] for r in rows) == n
+    assert all(r["ok"] for r in rows), [round(r["ratio"], 3) for r in rows]
+    assert all(abs(r["within"] - 0.5) < 0.05 for r in rows)
+    assert rows[0]["conf_hi"] <= rows[-1]["conf_lo"]  # from least to most confident
+    # errors 1.5x what the model states: every decile fails, ratio ~1.5
+    bad = decile_table(conf, scale, 1.5 * _laplace(scale, g))
+    assert not any(r["ok"] for r in bad)
+    assert all(1.3 < r["ratio"] < 1.7 for r in bad)
+    with pytest.raises(InputError):
+        decile_table(conf[:5], scale[:5], scale[:5])  # fewer tiles than bins
+    with pytest.raises(InputError):
+        decile_table(conf, scale[:-1], scale)
+
+
+# ---------------------------------------------------------------- per-tile bound
+PARAMS = {"psf_shape": "gaussian", "psf_beta": 2.0, "diffraction_sigma_px": 0.3, "astigmatism": 0.05,
+          "astigmatism_angle": 0.2, "spherical": 0.1, "full_well_e": 10_000.0, "read_noise_e": 3.0, "bits": 12,
+          "black_level_dn": 0.0, "gain": 1.0, "exposure": 1.0}
+
+
+def _texture(seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return 0.3 + 0.1 * (torch.rand(128, 160, generator=g, dtype=torch.float64) - 0.5)
+
+
+def test_tile_fisher_of_a_constant_depth_is_the_plane_fisher():
+    sharp = _texture()
+    f = tile_fisher(REF, sharp, torch.full((3, 4), 0.45, dtype=torch.float64), PARAMS)
+    torch.testing.assert_close(f, plane_fisher(REF, sharp, 0.45, PARAMS))
+
+
+def test_tile_fisher_interpolates_between_depths():
+    sharp = _texture(1)
+    # a slanted plane over 1.6-2.4 1/m (0.42-0.63 m), the depth information only
+    depth = 1.0 / torch.linspace(1.6, 2.4, 12, dtype=torch.float64).reshape(3, 4)
+    coarse = tile_fisher(REF, sharp, depth, PARAMS, nuisances=False)  # the default node spacing
+    # each tile as if the whole image were at its depth
+    for i, j in ((0, 0), (0, 1), (1, 2), (2, 3)):
+        exact = plane_fisher(REF, sharp, float(depth[i, j]), PARAMS, nuisances=False)[i, j]
+        torch.testing.assert_close(coarse[i, j], exact, rtol=0.02, atol=0)
+    # the nodes hit the ends of the range exactly
+    torch.testing.assert_close(coarse[0, 0], plane_fisher(REF, sharp, float(depth[0, 0]), PARAMS, nuisances=False)[0, 0],
+                               rtol=1e-12, atol=0)
+    with pytest.raises(InputError):
+        tile_fisher(REF, sharp, depth[:2], PARAMS)
+
+
+# ---------------------------------------------------------------- latency ratio
+def test_latency_ratio_pairs_rounds():
+    # the new model is 1.1x the baseline in every round, while the load doubles half-way
+    base = [1.0] * 10 + [2.0] * 10
+    new = [1.1] * 10 + [2.2] * 10
+    r = latency_ratio(new, base)
+    assert abs(r["paired"] - 1.1) < 1e-12 and abs(r["median"] - 1.65 / 1.5) < 1e-12
+    with pytest.raises(ValueError):
+        latency_ratio([], base)
+
+
+# ---------------------------------------------------------------- the two model runners
+def test_onnx_and_torch_runners_give_the_same_depth_and_scale():
+    from benchmarks.depth_models import load_depth_model
+    from benchmarks.report import ROOT
+    from tdfd.optics import render_pair
+
+    torch_model = load_depth_model(ROOT / "models" / "reference")
+    onnx_model = load_depth_model(ROOT / "models" / "reference.onnx")
+    assert (onnx_model.tile, onnx_model.stride) == (torch_model.tile, torch_model.stride)
+    assert onnx_model.confidence_scale == torch_model.confidence_scale
+    g = torch.Generator().manual_seed(5)
+    sharp = (0.4 + 0.2 * torch.rand(1, 1, 128, 192, generator=g, dtype=torch.float64)).clamp(0, 1)
+    i1, i2 = render_pair(REF, sharp, torch.full((1, 1, 128, 192), 0.5, dtype=torch.float64))
+    d_t, c_t, _ = torch_model.run(i1.float(), i2.float())
+    d_o, c_o, _ = onnx_model.run(i1.float(), i2.float())
+    torch.testing.assert_close(d_o, d_t, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(c_o, c_t, rtol=1e-3, atol=1e-4)
