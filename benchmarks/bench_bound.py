@@ -381,10 +381,15 @@ def median_at_bound(std: torch.Tensor) -> float:
     Example:
         >>> round(median_at_bound(torch.tensor([1.0, 1.0])), 4)  # one normal: 0.6745 sigma
         0.6745
+        >>> round(median_at_bound(torch.tensor([0.01] * 98 + [1e150] * 2)), 4)  # tiles with no information
+        0.0069
     """
     std = std.double().flatten().clamp_min(1e-300)
-    # 99 % of the tiles all but surely lie within 10 of their 99th-percentile sigmas
-    lo, hi = 0.0, 10.0 * float(std.quantile(0.99))
+    # an upper end that holds whatever the tail: at m = 5 s_75 three quarters of the
+    # tiles (sigma <= s_75) each have P(|e| <= m) >= erf(5 / sqrt 2) ~ 1, so the mean is >= 0.75 > 1/2.
+    # (A few tiles with no information have sigmas near 1e150; a 99th percentile start would put the
+    # search out of reach of 100 halvings.)
+    lo, hi = 0.0, 5.0 * float(std.quantile(0.75))
     for _ in range(100):
         mid = 0.5 * (lo + hi)
         if float(torch.erf(mid / (std * math.sqrt(2.0))).mean()) < 0.5:
