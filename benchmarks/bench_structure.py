@@ -43,7 +43,7 @@ from benchmarks.bench_bound import (MEDIAN_ABS, STRIDE, TILE, depth_variances, m
                                     tile_fisher)
 from benchmarks.depth_edges import EDGE_JUMP, EDGE_RATIO, edge_tiles
 from benchmarks.depth_models import DepthModel, load_depth_model
-from benchmarks.report import ROOT, markdown_table, update_section
+from benchmarks.report import ROOT, markdown_table, update_section, with_model_option
 from data_synth import DefocusPairDataset
 from data_synth.params import SynthConfig
 from training.config import TEXTURED_FAMILIES
@@ -229,8 +229,7 @@ def main(argv: list[str] | None = None) -> int:
             "the kind above holds there).\n")
     body += f"\nWall time: {wall:.0f} s ({len(STRUCTURE_LAYOUTS) * args.scenes} scenes).\n"
     cmd = f".venv/bin/python -m benchmarks.bench_structure --scenes {args.scenes}"
-    if Path(args.model).resolve() != (ROOT / "models" / "reference").resolve():
-        cmd += f" --model {args.model}"
+    cmd = with_model_option(cmd, args.model)
     update_section("structure", "Depth structure: slanted planes, occlusion layouts, smooth surfaces", body, cmd)
     return 0
 

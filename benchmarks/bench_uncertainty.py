@@ -32,7 +32,7 @@ from tqdm import tqdm
 from benchmarks.bench_refinement import BENCH_SEED
 from benchmarks.bench_structure import STRUCTURE_LAYOUTS, STRUCTURE_SEED, collect_structure
 from benchmarks.depth_models import DepthModel, load_depth_model, predicted_scale
-from benchmarks.report import ROOT, markdown_table, update_section
+from benchmarks.report import ROOT, markdown_table, update_section, with_model_option
 from benchmarks.uncertainty import CALIBRATION_TOLERANCE, decile_table, plot_calibration
 from training.config import DataConfig, EvalConfig, ModelConfig
 from training.data import fetch_batch, make_dataset
@@ -127,8 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         body += f"\n**{name}**\n\n" + markdown_table(header, _rows(table)) + "\n"
     body += f"\nWall time: {wall:.0f} s.\n"
     cmd = f".venv/bin/python -m benchmarks.bench_uncertainty --planes {args.planes} --scenes {args.scenes}"
-    if Path(args.model).resolve() != (ROOT / "models" / "reference").resolve():
-        cmd += f" --model {args.model}"
+    cmd = with_model_option(cmd, args.model)
     update_section("uncertainty", "Confidence as an uncertainty: calibration per confidence decile", body, cmd)
     return 0
 

@@ -64,6 +64,13 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> s
     return "\n".join(out)
 
 
+def with_model_option(command: str, model: str | Path) -> str:
+    """``command`` plus ``--model MODEL`` unless ``model`` is the shipped ``models/reference``."""
+    if Path(model).resolve() == (ROOT / "models" / "reference").resolve():
+        return command
+    return f"{command} --model {model}"
+
+
 def update_section(name: str, title: str, body: str, command: str, path: Path = BENCHMARKS_MD) -> None:
     """Replace (or append) section ``name`` of ``docs/BENCHMARKS.md``.
 

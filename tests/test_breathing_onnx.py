@@ -30,6 +30,7 @@ from tdfd.model import DFDModel
 from tdfd.registration import BreathingRegistration, register_breathing
 from tdfd.runtime import DepthRuntime
 from tdfd.textures import random_texture
+from tests.onnx_parity import assert_parity
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -84,10 +85,7 @@ def test_export_cli_puts_the_camera_breathing_in_graph_and_metadata(breathing_on
 def test_onnx_matches_torch_with_breathing(breathing_onnx):
     path, model = breathing_onnx
     report = verify_onnx(path, model, sizes=[(64, 64), (97, 161), (200, 330)], batches=[1, 2])
-    assert len(report.cases) == 6
-    assert report.worst_depth_rel <= 1e-4 and report.worst_confidence_abs <= 1e-3
-    assert all(c.depth_rel_all <= 1e-3 and c.depth_analytic_rel_all <= 1e-3 for c in report.cases)
-    assert sum(c.trusted_fraction for c in report.cases) / len(report.cases) > 0.5
+    assert_parity(report, cases=6)
 
 
 def test_onnx_graph_registers_as_torch_does(breathing_onnx, exported_onnx):
