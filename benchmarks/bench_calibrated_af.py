@@ -10,9 +10,10 @@ that is 0.3 dpt stronger than commanded, 0.4 % magnification per dioptre); the n
 JSON (:data:`~benchmarks.bench_calibration.NOMINAL`) knows none of that. For each route:
 
 1. capture with the documented command, ``tdfd capture --sim --camera-file TRUE.json``
-   (self: one 0..3.5 dpt sweep in 0.25 dpt steps plus one pair of a plane at 0.5 m, no
-   distance recorded; known distance: one pair each at 0.35, 0.5 and 0.8 m, recorded);
-2. ``tdfd calibrate DIR --camera NOMINAL.json -o CAM.json``;
+   (self: one 0..3.5 dpt sweep in 0.25 dpt steps plus one pair of each of three planes at
+   0.5, 0.4 and 0.7 m, one folder each, no distance recorded; known distance: one pair
+   each at 0.32, 0.4, 0.5, 0.65 and 0.9 m, recorded);
+2. ``tdfd calibrate DIR [DIR ...] --camera NOMINAL.json -o CAM.json``;
 3. the model: the ONNX model (``--model``) if its ``tdfd.coverage`` serves the calibrated
    camera (:class:`tdfd.runtime.DepthRuntime` with ``camera=CAM.json``), else the
    analytic estimator built on CAM.json (the refusal is printed);
@@ -47,14 +48,12 @@ from tdfd.cli import main as tdfd_main
 from tdfd.errors import ModelError
 from tdfd.runtime import DepthRuntime
 
-from .bench_calibration import NOMINAL, TRUE
+from .bench_calibration import KNOWN_SCENES_M, NOMINAL, SELF_SCENES_M, TRUE
 from .report import ROOT, markdown_table, update_section
 
 __all__ = ["main", "run_route", "capture_and_calibrate"]
 
 SWEEP = "0:3.5:0.25"
-SELF_DISTANCE_M = 0.5
-KNOWN_DISTANCES_M = (0.35, 0.5, 0.8)
 
 
 def _cli(*args: str) -> None:
@@ -68,17 +67,19 @@ def capture_and_calibrate(route: str, root: Path, size: int, seed: int) -> Camer
     true_json, nominal_json = root / "TRUE.json", root / "NOMINAL.json"
     TRUE.write(true_json)
     CameraFile(NOMINAL).write(nominal_json)
-    folder = root / f"captures-{route}"
     common = ["--sim", "--camera-file", true_json, "--size", size, size]
-    if route == "self":
-        _cli("capture", folder, *common, "--distance", SELF_DISTANCE_M, "--sweep", SWEEP, "--pair", "1.5,2.5",
-             "--seed", seed)
+    if route == "self":  # one folder per scene
+        folders = [root / f"captures-self-{i}" for i in range(len(SELF_SCENES_M))]
+        for i, (folder, d) in enumerate(zip(folders, SELF_SCENES_M)):
+            _cli("capture", folder, *common, "--distance", d, "--sweep", SWEEP, "--pair", "1.5,2.5",
+                 "--seed", seed + 10 * i)
     else:
-        for i, d in enumerate(KNOWN_DISTANCES_M):
-            _cli("capture", folder, *common, "--distance", d, "--record-distance", "--pair", "1.5,2.5",
+        folders = [root / "captures-known"]
+        for i, d in enumerate(KNOWN_SCENES_M):
+            _cli("capture", folders[0], *common, "--distance", d, "--record-distance", "--pair", "1.5,2.5",
                  "--seed", 100 * seed + i, "--prefix", f"d{i}_")
     out = root / f"CAM-{route}.json"
-    _cli("calibrate", folder, "--camera", nominal_json, "-o", out, "--route", route, "--no-plot")
+    _cli("calibrate", *folders, "--camera", nominal_json, "-o", out, "--route", route, "--no-plot")
     return load_camera_file(out)
 
 

@@ -30,6 +30,9 @@ def folders(tmp_path_factory):  # noqa: ANN201
     root = tmp_path_factory.mktemp("e2e")
     sweep = list(np.arange(0.0, 3.51, 0.25))
     capture_session(SimulatedRig(TRUE, 0.5, size=SIZE, seed=1), root / "self", sweep=sweep, pairs=[(1.5, 2.5)])
+    for i, d in enumerate((0.4, 0.7)):  # two more scenes, one folder each, no distance recorded
+        capture_session(SimulatedRig(TRUE, d, size=SIZE, seed=20 + i), root / f"self{i + 2}", sweep=sweep,
+                        pairs=[(1.5, 2.5)])
     for i, d in enumerate((0.35, 0.5, 0.8)):
         capture_session(SimulatedRig(TRUE, d, size=SIZE, seed=10 + i), root / "known", pairs=[(1.5, 2.5)],
                         distance_m=d, prefix=f"d{i}_")
@@ -107,3 +110,16 @@ def test_range_ends_need_large_regions() -> None:
                for r in ("default", 64)}
         assert abs(err["default"]) < 0.03, (d, err)
         assert abs(err[64]) > 0.04, (d, err)  # what the default region size fixes
+
+
+def test_calibrate_cli_self_route_over_three_scene_folders(folders, tmp_path, capsys) -> None:
+    out = tmp_path / "cam3.json"
+    dirs = [str(folders / name) for name in ("self", "self2", "self3")]
+    assert main(["calibrate", *dirs, "--camera", str(folders / "nominal.json"), "-o", str(out), "--no-plot"]) == 0
+    assert "self route" in capsys.readouterr().out
+    data = json.loads(out.read_text())
+    assert data["calibration"]["folder"] == dirs and len(data["calibration"]["scenes"]) == 3
+    three = load_camera_file(out)
+    k3 = three.camera.mu_px_per_m * three.camera.blur_scale_m_dpt
+    assert abs(k3 / K_TRUE - 1) <= 0.01, k3 / K_TRUE - 1  # three scenes average the one scene's K error down
+    _check(_errors(three))

@@ -11,10 +11,12 @@ import pytest
 from tdfd import Camera
 from tdfd.breathing import magnify
 from tdfd.calibration import CalibrationError, calibrate_known_distance, calibrate_self
+from tdfd.calibration.fit import group_scenes
 from tdfd.calibration.focus import symmetric_peak
 from tdfd.calibration.registration import fit_magnification_per_dpt, relative_magnification
 from tdfd.camera_file import CameraFile, load_camera_file
 from tdfd.capture import capture_session, read_folder, write_frame
+from tdfd.capture.folder import CaptureFolderError
 from tdfd.capture.sim import SimulatedRig
 from tdfd.cli import main
 from tdfd.errors import CameraError, InputError
@@ -52,6 +54,21 @@ def test_self_calibration_without_a_sweep(tmp_path) -> None:
     with pytest.raises(CalibrationError, match="needs a focus sweep") as err:
         calibrate_self(read_folder(tmp_path), CameraFile(REF))
     assert str(err.value).startswith(f"{tmp_path}: ")
+
+
+def test_scenes_are_grouped_per_folder_and_distance(tmp_path) -> None:
+    for folder in ("a", "b"):  # two sweeps at the same powers, no distance: one scene per folder
+        for k, p in enumerate((1.0, 1.5)):
+            write_frame(tmp_path / folder, f"s{k}", np.full((8, 8), 2000, np.uint16), lens_power_dpt=p, white_level=4095)
+    frames = read_folder(tmp_path / "a") + read_folder(tmp_path / "b")
+    scenes = group_scenes(frames)
+    assert [len(s.sweep) for s in scenes] == [2, 2]
+    assert [s.folder for s in scenes] == [tmp_path / "a", tmp_path / "b"]
+    assert scenes[1].label == f"unknown distance in {tmp_path / 'b'}"
+    assert group_scenes(read_folder(tmp_path / "a"))[0].label == "unknown distance"  # one folder: as before
+    write_frame(tmp_path / "a", "s9", np.full((8, 8), 2000, np.uint16), lens_power_dpt=1.5, white_level=4095)
+    with pytest.raises(CaptureFolderError, match="two sweep frames of one scene"):
+        group_scenes(read_folder(tmp_path / "a") + read_folder(tmp_path / "b"))
 
 
 def test_untextured_scene(tmp_path) -> None:

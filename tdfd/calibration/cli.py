@@ -1,8 +1,11 @@
-"""``tdfd calibrate DIR --camera NOMINAL.json -o CAM.json``: fit a camera to a capture folder.
+"""``tdfd calibrate DIR [DIR ...] --camera NOMINAL.json -o CAM.json``: fit a camera to capture folders.
 
 Routes (``--route``): ``self`` (focus sweep + pairs of a textured scene, no distance
 needed), ``known-distance`` (pairs of a target at known distances, the paper's route), or
-``auto`` (self when the folder holds a sweep, else known-distance). Writes the camera JSON
+``auto`` (self when the folders hold a sweep, else known-distance). Several folders are
+several scenes calibrated together (one fit: each scene's own in-focus powers, one K and
+one breathing): a self-calibration from one scene carries that scene's error in K (about
+1-2 %), three scenes at different distances average it down (docs/CALIBRATION.md). Writes the camera JSON
 (``tdfd.camera`` contract + ``magnification_per_dpt`` + ``calibration`` provenance), the
 fit plot ``CAM.png`` beside it, and prints the fitted values and residuals.
 """
@@ -23,7 +26,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``calibrate`` subcommand."""
     p = subparsers.add_parser("calibrate", help="fit a camera JSON to a capture folder", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("folder", metavar="DIR", help="capture folder (CONTRACT.md section 4)")
+    p.add_argument("folders", nargs="+", metavar="DIR",
+                   help="capture folder(s) (CONTRACT.md section 4); several folders: one scene each")
     p.add_argument("--camera", required=True, metavar="NOMINAL.json", help="datasheet camera JSON")
     p.add_argument("-o", "--output", required=True, metavar="CAM.json", help="fitted camera JSON to write")
     p.add_argument("--route", choices=("auto", "self", "known-distance"), default="auto")
@@ -38,16 +42,17 @@ def run(args: argparse.Namespace) -> int:
     from .fit import calibrate_known_distance, calibrate_self
 
     nominal = load_camera_file(args.camera)
-    frames = read_folder(args.folder)
+    frames = [f for folder in args.folders for f in read_folder(folder)]
     route = args.route
     if route == "auto":
         route = "self" if any(f.metadata.pair is None for f in frames) else "known-distance"
     fit = calibrate_self if route == "self" else calibrate_known_distance
     result = fit(frames, nominal, region=args.region, nominal_path=str(args.camera))
-    result.camera_file.calibration["folder"] = str(args.folder)  # type: ignore[index]
+    result.camera_file.calibration["folder"] = (  # type: ignore[index]
+        str(args.folders[0]) if len(args.folders) == 1 else [str(f) for f in args.folders])
     out = result.camera_file.write(args.output)
     s = result.summary()
-    print(f"calibrated {len(frames)} frames of {args.folder} ({route} route) -> {out}")
+    print(f"calibrated {len(frames)} frames of {', '.join(map(str, args.folders))} ({route} route) -> {out}")
     cam = result.camera_file.camera
     print(f"  K = {result.k_px_per_dpt:.5g} px/dpt  ->  mu = {cam.mu_px_per_m:.5g} px/m "
           f"(nominal {nominal.camera.mu_px_per_m:.5g})")

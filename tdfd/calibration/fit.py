@@ -32,6 +32,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -65,32 +66,41 @@ class CalibrationError(InputError):
 
 @dataclass
 class Scene:
-    """The frames of one scene: a sweep (sorted by power) and tagged pairs."""
+    """The frames of one scene: a sweep (sorted by power) and tagged pairs.
+
+    ``folder`` is set when the frames came from several capture folders (one scene per
+    folder and distance); ``None`` for a single folder.
+    """
 
     distance_m: float | None
     sweep: list[CaptureFrame] = field(default_factory=list)
     pairs: list[tuple[CaptureFrame, CaptureFrame]] = field(default_factory=list)
+    folder: Path | None = None
 
     @property
     def label(self) -> str:
-        return "unknown distance" if self.distance_m is None else f"distance {self.distance_m:g} m"
+        base = "unknown distance" if self.distance_m is None else f"distance {self.distance_m:g} m"
+        return base if self.folder is None else f"{base} in {self.folder}"
 
 
 def group_scenes(frames: Sequence[CaptureFrame]) -> list[Scene]:
-    """Group frames into scenes by ``distance_m`` (frames without one form one scene)."""
-    scenes: dict[float | None, Scene] = {}
-    tagged: dict[str, list[CaptureFrame]] = {}
+    """Group frames into scenes by capture folder and ``distance_m`` (in one folder, the frames
+    without a distance form one scene; several folders give one scene each, so that sweeps of
+    several scenes with no distance known can calibrate together)."""
+    several = len({f.path.parent for f in frames}) > 1
+    scenes: dict[tuple[Path | None, float | None], Scene] = {}
+    tagged: dict[tuple[Path, str], list[CaptureFrame]] = {}
     for f in frames:
-        d = f.metadata.distance_m
-        scenes.setdefault(d, Scene(d))
+        key = (f.path.parent if several else None, f.metadata.distance_m)
+        scenes.setdefault(key, Scene(key[1], folder=key[0]))
         if f.metadata.pair is None:
-            scenes[d].sweep.append(f)
+            scenes[key].sweep.append(f)
         else:
-            tagged.setdefault(f.metadata.pair, []).append(f)
-    for tag, (a, b) in tagged.items():
+            tagged.setdefault((f.path.parent, f.metadata.pair), []).append(f)
+    for (folder, tag), (a, b) in tagged.items():
         if a.metadata.distance_m != b.metadata.distance_m:
             raise CaptureFolderError(f"{b.path}: the frames of pair {tag!r} record different distances")
-        scenes[a.metadata.distance_m].pairs.append((a, b))
+        scenes[(folder if several else None, a.metadata.distance_m)].pairs.append((a, b))
     for s in scenes.values():
         s.sweep.sort(key=lambda f: f.power_dpt)
         powers = [f.power_dpt for f in s.sweep]
@@ -98,7 +108,7 @@ def group_scenes(frames: Sequence[CaptureFrame]) -> list[Scene]:
             if powers[k] == powers[k - 1]:
                 raise CaptureFolderError(f"{s.sweep[k].path}: two sweep frames of one scene ({s.label}) at "
                                          f"{powers[k]:g} dpt ({s.sweep[k - 1].name})")
-    return [scenes[k] for k in sorted(scenes, key=lambda d: (d is None, d or 0.0))]
+    return [scenes[k] for k in sorted(scenes, key=lambda k: (str(k[0]), k[1] is None, k[1] or 0.0))]
 
 
 @dataclass
