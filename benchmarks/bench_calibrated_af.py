@@ -163,6 +163,9 @@ def main(argv: list[str] | None = None) -> int:
              f"uniform in inverse depth, seed {args.seed}), single-shot DFD autofocus, 256x320 read-out. "
              "The simulated optics are the TRUE camera (mu +15 %, ECVFL 0.3 dpt stronger than commanded, "
              "0.4 %/dpt breathing); the controller and estimator get only the calibrated CAM.json. "
+             f"Calibration captures: self, a sweep and a pair of each of {len(SELF_SCENES_M)} planes at "
+             f"{', '.join(map(str, SELF_SCENES_M))} m (one folder each, no distance); known distances, one pair at each "
+             f"of {', '.join(map(str, KNOWN_SCENES_M))} m. "
              f"Estimator: {results[0]['estimator'].split(' (')[0]} (stride 32). ")
     if results and results[0]["estimator"].startswith("analytic"):
         body += (f"The model `{model_txt}` does not serve this camera (its `tdfd.coverage` refuses it: "
