@@ -248,7 +248,7 @@ about four times as long per target).
 
 The DFD controller declares focus only on its own evidence (`tdfd.autofocus.evidence`): the
 estimate's uncertainty (the model's predicted error, from its confidence, and the ROI tiles'
-disagreement) maps to at most 0.35 px of blur and the DFD pair's own relative blur (no model)
+disagreement) maps to at most 0.25 px of blur and the DFD pair's own relative blur (no model)
 allows the model's in-focus power (2 frames); or a verification frame at that power
 confirms it (the relative blur between that frame and the DFD pair, measured on the ROI
 without the depth model, gives the focus error; it must be below 0.8 px of blur with two

@@ -99,9 +99,9 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     ver.add_argument("--no-verify", dest="verify", action="store_const", const="never",
                      help="never take a verification frame: focus is declared on the estimate's uncertainty "
                           "alone, else the contrast search decides")
-    what.add_argument("--max-uncertainty", type=float, default=0.35,
+    what.add_argument("--max-uncertainty", type=float, default=0.25,
                       help="DFD uncertainty (px of blur) up to which focus is declared without a verification "
-                           "frame (default 0.35)")
+                           "frame (default 0.25)")
     what.add_argument("--continuous", action="store_true", help="keep re-estimating as the target moves")
     what.add_argument("--duration", type=float, default=2.0, help="continuous run length in seconds (default 2)")
     what.add_argument("--min-confidence", type=float, default=None,

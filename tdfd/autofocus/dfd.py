@@ -166,7 +166,7 @@ class DFDController(StateMachine):
                  continuous: bool = False, refocus_drop: float = 0.25, refocus_interval_s: float = 0.5,
                  dry_run: bool = False, lens_retries: int = 2, capture_retries: int = 1,
                  power_limits_dpt: tuple[float, float] | None = None, grid: tuple[int, int] | None = None,
-                 max_uncertainty_px: float = 0.35, confidence_scale: float = 0.01, verify_tolerance_px: float = 0.8,
+                 max_uncertainty_px: float = 0.25, confidence_scale: float = 0.01, verify_tolerance_px: float = 0.8,
                  verify_z: float = 2.0, shape_range: tuple[float, float] = (1.0, 1.3), refine_steps: int = 1,
                  agree_px: float = 0.5, combine_gate: float = 2.0, refine_z: float = 2.5,
                  refine_max_uncertainty_px: float = 1.0, contrast_min_peak: float = 1.1) -> None:

@@ -236,7 +236,7 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
                  white_level: float | None = None,
                  temperature_limits_c: tuple[float, float] = HARDWARE_TEMPERATURE_LIMITS_C,
                  contrast: dict | None = None, camera: Any | None = None, lens: Any | None = None,
-                 min_confidence: float | None = None, max_uncertainty_px: float = 0.35, light: Any | None = None,
+                 min_confidence: float | None = None, max_uncertainty_px: float = 0.25, light: Any | None = None,
                  illumination: str | None = None, light_limits: LightLimits = DEFAULT_LIMITS) -> AFResult:
     """Autofocus once (or continuously) on real hardware.
 
