@@ -351,9 +351,14 @@ class DepthRuntime:
 
     Attributes:
         camera: the user's ``camera`` when given (it blurs like the model's, so the model's
-            depths are its depths; in-focus powers use its own lenses), else
-            :attr:`model_camera`.
+            depths are its depths, up to :attr:`inverse_depth_offset_dpt`; in-focus powers use
+            its own lenses), else :attr:`model_camera`.
         model_camera: :class:`tdfd.Camera` rebuilt from the ``tdfd.camera`` metadata.
+        inverse_depth_offset_dpt: ``q_model - q_camera`` (1/m) for a ``camera`` that blurs like
+            the model's at inverse depths shifted by a constant (another fixed-lens power:
+            :func:`tdfd.coverage.check_coverage`); the returned depths are the camera's
+            (``1 / (1/depth_model - offset)``, kept in its extended range ``[1/(2 far), 2/near]``
+            1/m, confidence 0 where the shift leaves it). 0.0 otherwise.
         tile, stride: the tile grid (``tdfd.grid``).
         version: the tdfd version that exported the file.
         metadata: all ``metadata_props``, JSON-decoded where possible.
@@ -398,6 +403,7 @@ class DepthRuntime:
         self.version = str(self.metadata[VERSION_KEY])
         self.magnification_per_dpt, self.frame_scales = self._breathing()
         self.model_camera = self.camera
+        self.inverse_depth_offset_dpt = 0.0
         if camera is not None:
             self.camera = self._covered_camera(camera)
 
@@ -429,8 +435,23 @@ class DepthRuntime:
         if COVERAGE_KEY not in self.metadata:
             raise ModelError(f"{self.path} states no {COVERAGE_KEY!r} (which cameras it covers), so it cannot be "
                              f"checked for camera {camera.name!r}; re-export it with `python -m export`")
-        check_coverage(self.model_camera, self.metadata[COVERAGE_KEY], camera, str(self.path), label)
+        self.inverse_depth_offset_dpt = check_coverage(self.model_camera, self.metadata[COVERAGE_KEY], camera,
+                                                       str(self.path), label)
+        if self.inverse_depth_offset_dpt:
+            logger.info("%s serves camera %r with its inverse depth shifted by %+.4f 1/m (another fixed-lens power)",
+                        self.path, camera.name, -self.inverse_depth_offset_dpt)
         return camera
+
+    def _to_camera_depth(self, depth: np.ndarray, confidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The model's depth as the user's camera's (:mod:`tdfd.coverage`: ``q = q_model -
+        inverse_depth_offset_dpt``), in that camera's extended range ``[1/(2 far), 2/near]``
+        1/m as the model keeps its own; a tile the shift takes outside it gets confidence 0."""
+        near, far = self.camera.depth_range_m
+        q = 1.0 / np.asarray(depth, np.float64) - self.inverse_depth_offset_dpt
+        lo, hi = 1.0 / (2.0 * far), 2.0 / near
+        outside = (q < lo) | (q > hi)
+        conf = np.where(outside, 0.0, confidence).astype(np.float32)
+        return (1.0 / np.clip(q, lo, hi)).astype(np.float32), conf
 
     def __repr__(self) -> str:
         return f"DepthRuntime({str(self.path)!r}, tile={self.tile}, stride={self.stride}, threads={self.threads})"
@@ -542,6 +563,9 @@ class DepthRuntime:
         if window is not None or optical_centre is not None:
             a, b = self.window_pair(a, b, window or (0, a.shape[-2], 0, a.shape[-1]), optical_centre)
         depth, conf, depth_a = self.run(a, b)
+        if self.inverse_depth_offset_dpt:
+            depth, conf = self._to_camera_depth(depth, conf)
+            depth_a, _ = self._to_camera_depth(depth_a, conf)
         conf, problems = check_pairs(a, b, conf)
         H, W = a.shape[-2:]
         lead = {2: 0, 3: 1, 4: 2}[len(shape)]  # leading axes to keep: (H, W) -> none, (1, H, W) -> one

@@ -43,7 +43,29 @@ def test_coverage_is_both_frames_blur_over_the_working_range():
 @pytest.mark.parametrize("cam", [REF, TWIN, REF.replace(depth_range_m=(0.35, 0.9)), REF.replace(fixed_focal_length_m=0.025)],
                          ids=["itself", "pixel-twin", "narrower", "same"])
 def test_covered_cameras(cam):
-    check_coverage(REF, camera_coverage(REF), cam)
+    assert check_coverage(REF, camera_coverage(REF), cam) == 0.0
+
+
+@pytest.mark.parametrize("f0,ecvfl_shift", [(0.0249, 0.0), (0.0252, 0.0), (0.025, 0.3), (0.0249, -0.2)])
+def test_a_camera_with_another_fixed_lens_power_is_served_with_an_inverse_depth_offset(f0, ecvfl_shift):
+    """Eq. 4 depends on 1/F - 1/d_o only: a fixed lens (or both ECVFL powers) stronger by
+    delta blurs at q as the model's camera at q - delta, for both frames alike."""
+    p1, p2 = REF.lens_powers_dpt
+    cam = REF.replace(fixed_focal_length_m=f0, lens_powers_dpt=(p1 + ecvfl_shift, p2 + ecvfl_shift),
+                      depth_range_m=(0.34, 0.7))
+    delta_typed = (1 / REF.fixed_focal_length_m - 1 / f0) - ecvfl_shift  # model's total power minus the camera's
+    offset = check_coverage(REF, camera_coverage(REF), cam)
+    assert offset == pytest.approx(delta_typed, abs=1e-9)
+    for d in (0.34, 0.5, 0.7):  # the camera at d blurs as the model's camera at 1/(1/d + offset)
+        d_model = 1 / (1 / d + offset)
+        for frame in (0, 1):
+            assert eq4_px(cam, d, frame) == pytest.approx(eq4_px(REF, d_model, frame), abs=1e-9)
+
+
+def test_an_offset_camera_whose_shifted_blur_leaves_the_covered_range_is_refused():
+    cam = REF.replace(fixed_focal_length_m=0.0249)  # 0.16 dpt stronger: its 1 m blurs as the model's 1.19 m
+    with pytest.raises(ModelError, match=r"frame 1 blurs .* the model covers"):
+        check_coverage(REF, camera_coverage(REF), cam)
 
 
 @pytest.mark.parametrize("cam,match", [
@@ -51,7 +73,7 @@ def test_covered_cameras(cam):
     (REF.replace(depth_range_m=(0.3, 1.5)), r"frame 1 blurs .* the model covers"),
     (REF.replace(mu_px_per_m=REF.mu_px_per_m * 1.01), "would be wrong"),
     (REF.replace(lens_powers_dpt=(1.7, 2.8)), "would be wrong"),
-    (REF.replace(fixed_focal_length_m=0.0249), "would be wrong"),
+    (REF.replace(lens_powers_dpt=(1.8, 2.7)), "at best under a shift of inverse depth"),
     (APERTURE, "would be wrong"),
 ])
 def test_uncovered_cameras_are_refused(cam, match):
@@ -91,6 +113,31 @@ def test_runtime_checks_the_users_camera_at_load_time(exported_onnx, tmp_path):
         DepthRuntime(path, threads=1, camera=bad)
     with pytest.raises(CameraError, match="missing.json"):
         DepthRuntime(path, threads=1, camera=tmp_path / "missing.json")
+
+
+def test_runtime_returns_the_offset_cameras_depth(exported_onnx, tmp_path):
+    """A camera whose fixed lens is 0.16 dpt stronger: the same frames give its depth,
+    1/(1/d_model - offset), and its in-focus power equals the model camera's for the frames."""
+    path, _ = exported_onnx
+    cam = REF.replace(fixed_focal_length_m=0.0249, depth_range_m=(0.34, 0.7), name="stronger-f0")
+    plain = DepthRuntime(path, threads=1)
+    shifted = DepthRuntime(path, threads=1, camera=CameraFile(cam).write(tmp_path / "f0.json"))
+    offset = shifted.inverse_depth_offset_dpt
+    assert plain.inverse_depth_offset_dpt == 0.0 and offset == pytest.approx(1 / 0.025 - 1 / 0.0249, abs=1e-9)
+    rng = np.random.default_rng(3)
+    f1, f2 = (rng.random((96, 96)).astype(np.float32) for _ in range(2))
+    a, b = plain(f1, f2), shifted(f1, f2)
+    q_model, q_cam = 1 / a.depth.astype(np.float64), 1 / b.depth.astype(np.float64)
+    inside = (q_model - offset > 1 / 1.4) & (q_model - offset < 2 / 0.34)  # the camera's extended range
+    assert inside.any()
+    np.testing.assert_allclose(q_cam[inside], q_model[inside] - offset, rtol=1e-5)
+    np.testing.assert_array_equal(b.confidence[inside], a.confidence[inside])
+    assert np.all(b.confidence[~inside] == 0)
+    np.testing.assert_allclose(1 / b.depth_analytic.astype(np.float64)[inside],
+                               1 / a.depth_analytic.astype(np.float64)[inside] - offset, rtol=1e-5)
+    # the focusing power is a property of the blur, not of the depth convention
+    np.testing.assert_allclose(shifted.in_focus_power_dpt(b.depth[inside]), plain.in_focus_power_dpt(a.depth[inside]),
+                               atol=1e-4)
 
 
 def test_runtime_refuses_a_check_against_a_model_without_coverage(exported_onnx, tmp_path):

@@ -100,9 +100,12 @@ class OnnxEstimator:
     Args:
         path: the ONNX file (default: :func:`default_model_path`).
         threads: onnxruntime intra-op threads.
+        camera: the user's camera (a :class:`~tdfd.camera.Camera`, preset name or camera
+            JSON), checked against the model's coverage at load time
+            (``DepthRuntime(..., camera=...)``); default: the model's own.
 
     Attributes:
-        camera: from the ``tdfd.camera`` metadata.
+        camera: the user's camera, else the one from the ``tdfd.camera`` metadata.
         tile, stride: from ``tdfd.grid``.
         path: the file.
         backend: ``"tdfd.runtime"``.
@@ -112,18 +115,21 @@ class OnnxEstimator:
             on targets apart from the benchmark's.
 
     Raises:
-        ModelError: the file is missing or lacks the contract's inputs, outputs or metadata.
+        ModelError: the file is missing or lacks the contract's inputs, outputs or metadata,
+            or it does not cover ``camera``.
+        CameraError: a ``camera`` file that is missing or invalid.
     """
 
     backend = "tdfd.runtime"
 
-    def __init__(self, path: str | Path | None = None, threads: int = ONNX_INTRA_THREADS) -> None:
+    def __init__(self, path: str | Path | None = None, threads: int = ONNX_INTRA_THREADS,
+                 camera: Camera | str | Path | None = None) -> None:
         self.path = Path(path) if path is not None else default_model_path()
         self.threads = int(threads)
         self.min_confidence = 0.003
         if not self.path.is_file():
             raise ModelError(f"ONNX model {self.path} not found")
-        self._runtime = DepthRuntime(self.path, threads=self.threads)
+        self._runtime = DepthRuntime(self.path, threads=self.threads, camera=camera)
         self.camera: Camera = self._runtime.camera
         self.tile, self.stride = int(self._runtime.tile), int(self._runtime.stride)
         self.last_problem: str | None = None
