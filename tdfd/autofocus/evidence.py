@@ -44,6 +44,7 @@ __all__ = [
     "FocusUncertainty",
     "estimate_uncertainty",
     "relative_blur_px2",
+    "relative_blur_search_px2",
     "FocusCheck",
     "verify_focus",
     "pair_focus_interval",
@@ -141,6 +142,33 @@ def _kernel_energy(s: float) -> float:
     return float((g * g).sum()) ** 2
 
 
+#: The relative-blur search range never goes below this (px²): the reference camera's frames
+#: blur by at most 4 px (sigma), and the thresholds of docs/BENCHMARKS.md were tuned with it.
+MIN_SEARCH_PX2 = 64.0
+
+
+def relative_blur_search_px2(camera: Camera) -> float:
+    """The :func:`relative_blur_px2` search range for ``camera``: ``(1.5 sigma_max)^2`` (px²),
+    with ``sigma_max`` the larger frame blur of the DFD pair over the working range, and at
+    least :data:`MIN_SEARCH_PX2` (so the reference camera keeps 64 px²; the paper camera, 4x
+    binned, blurs by up to 32 px and needs about 2 300 px²).
+
+    Example:
+        >>> from tdfd import Camera
+        >>> relative_blur_search_px2(Camera.preset("reference"))
+        64.0
+    """
+    near, far = camera.depth_range_m
+    sigma = max(abs(alpha - a * q) for alpha, a in camera.sigma_lines_px() for q in (1.0 / near, 1.0 / far))
+    return max(MIN_SEARCH_PX2, (1.5 * sigma) ** 2)
+
+
+def search_margin_px(max_px2: float) -> int:
+    """Border (px) :func:`relative_blur_px2` leaves out of its residual for a search range
+    ``max_px2``: 1.5 times the largest Gaussian sigma it applies (12 px for 64 px²)."""
+    return max(12, int(math.ceil(1.5 * math.sqrt(max_px2))))
+
+
 def relative_blur_px2(image_a: np.ndarray, image_b: np.ndarray, roi: Roi | None = None, *,
                       max_px2: float = 64.0, margin_px: int = 12) -> float:
     r"""Difference of Gaussian blur variances ``sigma_b^2 - sigma_a^2`` (px²) of two frames of one scene.
@@ -234,7 +262,7 @@ class FocusCheck:
 def verify_focus(frame: np.ndarray, power_dpt: float, references: Sequence[tuple[np.ndarray, float]], camera: Camera,
                  roi: Roi | None = None, *, tolerance_dpt: float | None = None, z: float = 2.0,
                  noise_px2: float = 0.12, relative_noise: float = 0.06, shape_range: tuple[float, float] = (0.85, 1.5),
-                 consistency_sigmas: float = 3.0) -> FocusCheck:
+                 consistency_sigmas: float = 3.0, max_px2: float | None = None) -> FocusCheck:
     r"""Check a frame taken at ``power_dpt`` against frames of the same scene at other powers.
 
     Each reference frame ``(image, P_k)`` gives ``D_k`` (:func:`relative_blur_px2`), which
@@ -262,6 +290,8 @@ def verify_focus(frame: np.ndarray, power_dpt: float, references: Sequence[tuple
         noise_px2, relative_noise, shape_range: the error model above, measured on the bench
             (docs/BENCHMARKS.md, ``reliability``).
         consistency_sigmas: see above.
+        max_px2: the relative-blur search range (px²; default
+            :func:`relative_blur_search_px2` of ``camera``).
 
     Raises:
         InputError: no reference frame.
@@ -280,7 +310,9 @@ def verify_focus(frame: np.ndarray, power_dpt: float, references: Sequence[tuple
         return FocusCheck(False, math.nan, math.inf, False, (), "no reference frame at another power")
     bi = np.array([frames[i][1] for i, _ in pairs])
     bj = np.array([frames[j][1] for _, j in pairs])
-    d = np.array([relative_blur_px2(frames[i][0], frames[j][0], roi) for i, j in pairs])  # sigma_j^2 - sigma_i^2
+    search = relative_blur_search_px2(camera) if max_px2 is None else float(max_px2)
+    d = np.array([relative_blur_px2(frames[i][0], frames[j][0], roi, max_px2=search, margin_px=search_margin_px(search))
+                  for i, j in pairs])  # sigma_j^2 - sigma_i^2
     sd = noise_px2 + relative_noise * np.abs(d)
     a = bj - bi
     alphas = np.linspace(shape_range[0], shape_range[1], 66)
@@ -307,7 +339,8 @@ def verify_focus(frame: np.ndarray, power_dpt: float, references: Sequence[tuple
 
 def pair_focus_interval(image_f1: np.ndarray, power_f1_dpt: float, image_f2: np.ndarray, power_f2_dpt: float,
                         camera: Camera, roi: Roi | None = None, *, shape_range: tuple[float, float] = (1.0, 1.3),
-                        noise_px2: float = 0.12, relative_noise: float = 0.06, z: float = 2.0) -> tuple[float, float]:
+                        noise_px2: float = 0.12, relative_noise: float = 0.06, z: float = 2.0,
+                        max_px2: float | None = None) -> tuple[float, float]:
     r"""The in-focus powers the DFD pair itself allows, measured without the depth model.
 
     ``D = sigma_2^2 - sigma_1^2`` (:func:`relative_blur_px2`) and
@@ -315,6 +348,9 @@ def pair_focus_interval(image_f1: np.ndarray, power_f1_dpt: float, image_f2: np.
     ``P* = (P_1 + P_2)/2 - D / (2 alpha M^2 (P_2 - P_1))``; the interval spans ``alpha`` over
     ``shape_range`` and ``D`` over ``z`` standard uncertainties. It is a second, independent
     opinion on the model's estimate: a model that is confidently wrong lands outside it.
+
+    ``max_px2``: the relative-blur search range (px², default
+    :func:`relative_blur_search_px2` of ``camera``).
 
     Returns:
         ``(low, high)`` ECVFL powers (dpt).
@@ -326,7 +362,8 @@ def pair_focus_interval(image_f1: np.ndarray, power_f1_dpt: float, image_f2: np.
     if abs(dp) < 0.02:
         raise InputError("the DFD pair needs two different powers")
     m2 = sigma_px_per_dpt(camera) ** 2
-    d = relative_blur_px2(image_f1, image_f2, roi)
+    search = relative_blur_search_px2(camera) if max_px2 is None else float(max_px2)
+    d = relative_blur_px2(image_f1, image_f2, roi, max_px2=search, margin_px=search_margin_px(search))
     sd = noise_px2 + relative_noise * abs(d)
     mid = 0.5 * (float(power_f1_dpt) + float(power_f2_dpt))
     cands = [mid - dd / (2.0 * a * m2 * dp) for a in shape_range for dd in (d - z * sd, d + z * sd)]
