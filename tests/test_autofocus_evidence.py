@@ -9,15 +9,8 @@ import numpy as np
 import pytest
 
 from tdfd import Camera
-from tdfd.autofocus.evidence import (
-    MIN_SEARCH_PX2,
-    pair_focus_interval,
-    relative_blur_px2,
-    relative_blur_search_px2,
-    search_margin_px,
-    sigma_px_per_dpt,
-    verify_focus,
-)
+from tdfd.autofocus.evidence import pair_focus_interval, sigma_px_per_dpt, verify_focus
+from tdfd.autofocus.relative_blur import MIN_SEARCH_PX2, relative_blur_px2, relative_blur_search_px2, search_margin_px
 
 REF = Camera.preset("reference")
 PAPER = Camera.preset("paper")

@@ -16,7 +16,9 @@ Layers, bottom to top; a module imports only from its own layer or the ones belo
      :mod:`~tdfd.autofocus.sharpness` (:func:`sharpness`, texture over noise); the in-focus
      power is :func:`tdfd.camera.in_focus_power_dpt` (the one formula, re-exported here),
      :mod:`~tdfd.autofocus.evidence` (what a declared focus rests on: the estimate's
-     uncertainty, the DFD pair's own relative blur, a verification frame).
+     uncertainty, the DFD pair's own relative blur, a verification frame), measured with
+     :mod:`~tdfd.autofocus.relative_blur` (two frames' relative blur, no model; its search
+     range scaled to the camera's blur).
 
 2. Policies
 

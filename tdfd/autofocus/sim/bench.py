@@ -56,7 +56,7 @@ from ..estimators import suggested_confidence_scale, suggested_min_confidence
 from ..interfaces import Estimator
 from ..machine import StateMachine, drive
 from ..messages import AFResult
-from ..evidence import relative_blur_px2
+from ..relative_blur import relative_blur_px2
 from ..roi import Roi, roi_crop_box
 from .camera import VirtualCamera
 from .clock import SimClock
@@ -152,7 +152,7 @@ class SimBench:
 
     def calibrate_evidence(self, repeats: int = 5) -> float:
         """Median wall time (s) of one relative-blur measurement on the ROI (the controller's evidence,
-        :func:`tdfd.autofocus.evidence.relative_blur_px2`), after one warm-up run."""
+        :func:`tdfd.autofocus.relative_blur.relative_blur_px2`), after one warm-up run."""
         import cv2
 
         rng = np.random.default_rng(54321)
