@@ -322,9 +322,14 @@ reference camera). Measured (seed 0, coherent), by distance:
 blur is {1 / blur_px_per_dpt(paper_camera(4)):.3f} dpt of focus error, 1.3 % of depth at 0.3 m, so its single-shot
 estimate is mostly confirmed by a verification frame and a correction (4 frames). Nearer than
 about 0.5 m the pattern's bars (about 8 binned px wide) are blurred by 34-64 px in both frames of
-the pair, and the lit ROI's contrast stays under 1.5x its noise floor: no texture for DFD, and
-a contrast search whose frames differ by under 1.1x declares nothing. A pair at stronger powers
-for the near range would see the pattern; the controller uses the camera's one pair.
+the pair, and the lit ROI's contrast stays under 1.5x its noise floor: no texture for DFD. The
+contrast search that takes over is lit with the coherent pattern (sharp at every distance, so
+the search's frames show it at focus; a projector's searches stay unlit,
+`tdfd.autofocus.assist.SHARP_PATTERNS`), and since one 0.4 dpt scan step is 9 px of blur for
+this camera it scans again around its peak in steps of 1 px of blur (`ContrastSearch`,
+`fine_scan_px`; the reference camera, 1.1 px per step, never does): in focus, at 19-21 frames.
+A pair at stronger powers for the near range would see the pattern with far fewer frames; the
+controller uses the camera's one pair.
 
 Trials not in focus within 3 frames (coherent, projector, textured with the light; {len(notes)}):
 {chr(10).join('- ' + x for x in notes[:40]) if notes else '- none'}

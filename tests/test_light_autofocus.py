@@ -214,3 +214,44 @@ def test_untrusted_unlit_estimate_is_retried_lit_only_on_a_weak_texture(amplitud
         assert cmd.then_power_dpt == CAM.lens_powers_dpt[0]
     else:
         assert ctrl.state.name == "CONTRAST" and getattr(cmd, "light", None) is None
+
+
+# ------------------------------------------------ the contrast search lit with a sharp pattern
+_PAPER = Camera.preset("paper")
+#: the paper camera binned 4x (benchmarks/paper_experiment.py): 21.2 um pixels, 300 x 400
+PAPER4 = _PAPER.replace(pixel_pitch_m=4 * _PAPER.pixel_pitch_m, sensor_size_px=(300, 400),
+                        mu_px_per_m=1 / (2 * 4 * _PAPER.pixel_pitch_m), name="paper4")
+
+
+@pytest.mark.parametrize("pattern", ["coherent", "projector"])
+def test_a_near_texture_less_target_is_searched_lit_only_with_a_sharp_pattern(pattern):
+    """The paper camera at 0.33 m: both frames of the pair blur the pattern into the noise, so
+    DFD sees no texture and contrast-detect AF takes over. Lit with the coherent pattern (sharp at
+    every distance) the search finds focus, scanning again around its coarse peak (one 0.4 dpt
+    step is 9 px of blur here); a projector's search stays unlit and declares nothing."""
+    from tdfd.autofocus.roi import Roi
+
+    light = SimulatedLight(PAPER4)
+    est = AnalyticEstimator(PAPER4, tile=128, stride=32)
+    with SimBench(estimator=est, light=light, controller={"illumination": pattern}, compute_s=0.005,
+                  evidence_s=0.005, readout_hw=PAPER4.sensor_size_px, roi=Roi.centre(PAPER4.sensor_size_px, 0.9),
+                  seed=0) as bench:
+        rec = bench.run_trial(0.33, "dfd", uniform=True)
+    assert rec.method == "contrast" and "texture-less" in rec.reason
+    assert not light.is_on
+    if pattern == "coherent":
+        assert rec.in_focus and rec.status == "focused" and rec.frames >= 15  # coarse scan + fine scan
+        assert light.switch_count == rec.frames  # every frame lit: the pair and the whole search
+    else:
+        assert rec.status == "unconfirmed" and not rec.declared
+        assert light.switch_count == 2  # the pair only
+
+
+def test_the_fine_scan_is_only_for_a_shallow_depth_of_field():
+    from tdfd.autofocus.contrast import ContrastSearch
+    from tdfd.autofocus.evidence import blur_px_per_dpt
+
+    ref, search = Camera.preset("reference"), ContrastSearch(CAM)
+    assert blur_px_per_dpt(ref) * search.step_dpt < search.fine_scan_px < blur_px_per_dpt(PAPER4) * search.step_dpt
+    with pytest.raises(InputError, match="fine_scan_px"):
+        ContrastSearch(CAM, fine_scan_px=-1)

@@ -30,6 +30,7 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InputError
 from ..camera import in_focus_power_dpt
+from .evidence import blur_px_per_dpt
 from .machine import StateMachine
 from .messages import AFResult, Command, Observation, State
 from .roi import Roi
@@ -90,11 +91,20 @@ class ContrastSearch:
             ``stop_ratio`` times its sharpness.
         fine: capture one more frame at the refined peak (scan strategy).
         tol_dpt: final bracket width of the golden-section search (dpt).
+        light: the assist-light pattern every search frame is lit with (``Capture(..., light=)``;
+            the plant's light guard enforces its limits); ``None``: unlit frames.
+        fine_scan_px: a camera whose blur changes by more than this (geometric radius, px)
+            over one ``step_dpt`` has a depth of field the coarse scan cannot resolve (the
+            4x-binned paper camera: 9 px per 0.4 dpt); the scan strategy then scans again
+            around its peak, one step wide, in steps of ``fine_scan_px / 2`` px of blur, and
+            takes that scan's peak. 0 disables; the reference camera (1.1 px per step) never
+            takes it.
     """
 
     def __init__(self, camera: Camera, roi: Roi | None = None, strategy: str = "scan", measure: str = "laplacian",
                  span_dpt: tuple[float, float] | None = None, margin_dpt: float = 0.15, step_dpt: float = 0.4,
-                 stop_ratio: float = 0.6, fine: bool = False, tol_dpt: float = 0.15) -> None:
+                 stop_ratio: float = 0.6, fine: bool = False, tol_dpt: float = 0.15, light: str | None = None,
+                 fine_scan_px: float = 2.0) -> None:
         if strategy not in ("scan", "golden"):
             raise InputError(f"contrast strategy must be 'scan' or 'golden', got {strategy!r}")
         if measure not in MEASURES:
@@ -108,6 +118,9 @@ class ContrastSearch:
         lo, hi = sorted(float(v) for v in span_dpt)
         self.span_dpt = (lo, hi)
         self.step_dpt, self.stop_ratio, self.fine, self.tol_dpt = float(step_dpt), float(stop_ratio), bool(fine), float(tol_dpt)
+        self.light, self.fine_scan_px = light, float(fine_scan_px)
+        if self.fine_scan_px < 0:
+            raise InputError(f"fine_scan_px must be >= 0, got {fine_scan_px}")
         self.samples: list[tuple[float, float]] = []  # (power_dpt, sharpness) in capture order
 
     def _span(self, machine: StateMachine) -> tuple[float, float]:
@@ -147,7 +160,7 @@ class ContrastSearch:
         values: list[float] = []
         for i, p in enumerate(powers):
             nxt = float(powers[i + 1]) if i + 1 < len(powers) else None
-            frame, _ = yield from machine._capture("contrast", then_power_dpt=nxt)
+            frame, _ = yield from machine._capture("contrast", then_power_dpt=nxt, light=self.light)
             values.append(self._measure(frame))
             best = int(np.argmax(values))
             if i - best >= 2 and values[-1] < self.stop_ratio * values[best] and values[-2] < values[best]:
@@ -157,11 +170,32 @@ class ContrastSearch:
         p_best = _refine_peak([float(p) for p in powers[: len(values)]], values, best, self.step_dpt)
         if self.fine and abs(p_best - float(powers[best])) > 1e-6:
             yield from machine._set_power(p_best)
-            frame, _ = yield from machine._capture("contrast")
+            frame, _ = yield from machine._capture("contrast", light=self.light)
             if self._measure(frame) < values[best]:
                 p_best = float(powers[best])
+        px_per_dpt = blur_px_per_dpt(self.camera)
+        if self.fine_scan_px > 0 and px_per_dpt * self.step_dpt > self.fine_scan_px:
+            p_best = yield from self._fine_scan(machine, p_best, px_per_dpt)
         log.info("contrast scan: peak at %.3f dpt after %d frames", p_best, len(self.samples))
         return p_best
+
+    def _fine_scan(self, machine: StateMachine, centre: float, px_per_dpt: float) -> Generator[Command, Observation, float]:
+        """A second scan one coarse step wide around ``centre``, in steps of half
+        ``fine_scan_px`` of blur: the coarse peak of a shallow depth of field is off by up to
+        half a step (several px of blur)."""
+        lo, hi = self._span(machine)
+        a, b = max(lo, centre - 0.5 * self.step_dpt), min(hi, centre + 0.5 * self.step_dpt)
+        step = 0.5 * self.fine_scan_px / px_per_dpt
+        n = max(3, int(math.ceil((b - a) / step - 1e-9)) + 1)
+        powers = [float(p) for p in np.linspace(a, b, n)]
+        values = []
+        yield from machine._set_power(powers[0])
+        for i, p in enumerate(powers):
+            nxt = powers[i + 1] if i + 1 < len(powers) else None
+            frame, _ = yield from machine._capture("contrast", then_power_dpt=nxt, light=self.light)
+            values.append(self._measure(frame))
+        best = int(np.argmax(values))
+        return _refine_peak(powers, values, best, (b - a) / (n - 1))
 
     def _golden(self, machine: StateMachine) -> Generator[Command, Observation, float]:
         lo, hi = self._span(machine)
@@ -171,7 +205,7 @@ class ContrastSearch:
 
         def evaluate(p: float) -> Generator[Command, Observation, float]:
             yield from machine._set_power(p)
-            frame, _ = yield from machine._capture("contrast")
+            frame, _ = yield from machine._capture("contrast", light=self.light)
             return self._measure(frame)
 
         fc = yield from evaluate(c)
