@@ -28,7 +28,6 @@ import argparse
 import sys
 import time
 
-import numpy as np
 import torch
 
 from benchmarks.report import ROOT, markdown_table, update_section

@@ -96,8 +96,14 @@ def inverse_depth_offset_dpt(model_camera: Camera, camera: Camera) -> tuple[floa
     offset) is matched exactly: ``delta`` is the model's total power minus the camera's.
     """
     q = _inverse_depths(camera)
-    mine, theirs = frame_blur_px(camera, q), frame_blur_px(model_camera, q)
-    slopes = np.array([a for _, a in model_camera.sigma_lines_px()], dtype=np.float64)[:, None] * np.ones_like(q)[None, :]
+    return _best_shift(model_camera, frame_blur_px(camera, q), frame_blur_px(model_camera, q))
+
+
+def _best_shift(model_camera: Camera, mine: np.ndarray, theirs: np.ndarray) -> tuple[float, float]:
+    """:func:`inverse_depth_offset_dpt` from both frames' blur ``(2, N)`` of the camera
+    (``mine``) and of the model's camera (``theirs``) at the same inverse depths."""
+    slopes = np.broadcast_to(np.array([a for _, a in model_camera.sigma_lines_px()], dtype=np.float64)[:, None],
+                             mine.shape)
     # theirs(q + delta) = theirs(q) - a delta (sigma = alpha - a q): minimise |mine - theirs + a delta|^2
     denom = float((slopes * slopes).sum())
     delta = float((slopes * (theirs - mine)).sum() / denom) if denom > 0 else 0.0
@@ -147,7 +153,7 @@ def check_coverage(model_camera: Camera, coverage: Any, camera: Camera, source: 
     miss = np.abs(mine - theirs).max(0)
     offset = 0.0
     if float(miss.max()) > tol:
-        delta, shifted_miss = inverse_depth_offset_dpt(model_camera, camera)
+        delta, shifted_miss = _best_shift(model_camera, mine, theirs)
         if shifted_miss > tol:
             k = int(np.argmax(miss))
             raise ModelError(

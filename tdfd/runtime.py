@@ -442,16 +442,14 @@ class DepthRuntime:
                         self.path, camera.name, -self.inverse_depth_offset_dpt)
         return camera
 
-    def _to_camera_depth(self, depth: np.ndarray, confidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _to_camera_depth(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The model's depth as the user's camera's (:mod:`tdfd.coverage`: ``q = q_model -
         inverse_depth_offset_dpt``), in that camera's extended range ``[1/(2 far), 2/near]``
-        1/m as the model keeps its own; a tile the shift takes outside it gets confidence 0."""
+        1/m as the model keeps its own, and the mask of tiles the shift takes outside it."""
         near, far = self.camera.depth_range_m
         q = 1.0 / np.asarray(depth, np.float64) - self.inverse_depth_offset_dpt
         lo, hi = 1.0 / (2.0 * far), 2.0 / near
-        outside = (q < lo) | (q > hi)
-        conf = np.where(outside, 0.0, confidence).astype(np.float32)
-        return (1.0 / np.clip(q, lo, hi)).astype(np.float32), conf
+        return (1.0 / np.clip(q, lo, hi)).astype(np.float32), (q < lo) | (q > hi)
 
     def __repr__(self) -> str:
         return f"DepthRuntime({str(self.path)!r}, tile={self.tile}, stride={self.stride}, threads={self.threads})"
@@ -564,8 +562,9 @@ class DepthRuntime:
             a, b = self.window_pair(a, b, window or (0, a.shape[-2], 0, a.shape[-1]), optical_centre)
         depth, conf, depth_a = self.run(a, b)
         if self.inverse_depth_offset_dpt:
-            depth, conf = self._to_camera_depth(depth, conf)
-            depth_a, _ = self._to_camera_depth(depth_a, conf)
+            depth, outside = self._to_camera_depth(depth)
+            conf = np.where(outside, 0.0, conf).astype(np.float32)  # the shift left the camera's range
+            depth_a, _ = self._to_camera_depth(depth_a)
         conf, problems = check_pairs(a, b, conf)
         H, W = a.shape[-2:]
         lead = {2: 0, 3: 1, 4: 2}[len(shape)]  # leading axes to keep: (H, W) -> none, (1, H, W) -> one

@@ -156,16 +156,7 @@ class ContrastSearch:
         here = machine._lens_power
         if here is not None and abs(here - hi) < abs(here - lo):
             powers.reverse()
-        yield from machine._set_power(float(powers[0]))
-        values: list[float] = []
-        for i, p in enumerate(powers):
-            nxt = float(powers[i + 1]) if i + 1 < len(powers) else None
-            frame, _ = yield from machine._capture("contrast", then_power_dpt=nxt, light=self.light)
-            values.append(self._measure(frame))
-            best = int(np.argmax(values))
-            if i - best >= 2 and values[-1] < self.stop_ratio * values[best] and values[-2] < values[best]:
-                log.debug("contrast scan: stopping after %d frames (peak passed)", i + 1)
-                break
+        values = yield from self._sweep(machine, powers, stop_early=True)
         best = int(np.argmax(values))
         p_best = _refine_peak([float(p) for p in powers[: len(values)]], values, best, self.step_dpt)
         if self.fine and abs(p_best - float(powers[best])) > 1e-6:
@@ -179,6 +170,23 @@ class ContrastSearch:
         log.info("contrast scan: peak at %.3f dpt after %d frames", p_best, len(self.samples))
         return p_best
 
+    def _sweep(self, machine: StateMachine, powers: Sequence[float], stop_early: bool
+               ) -> Generator[Command, Observation, list[float]]:
+        """One frame at each of ``powers`` in order (each move commanded at the previous
+        exposure's end) and its sharpness; with ``stop_early`` the sweep ends once two frames
+        after the best have fallen below ``stop_ratio`` of it (the peak is passed)."""
+        yield from machine._set_power(float(powers[0]))
+        values: list[float] = []
+        for i in range(len(powers)):
+            nxt = float(powers[i + 1]) if i + 1 < len(powers) else None
+            frame, _ = yield from machine._capture("contrast", then_power_dpt=nxt, light=self.light)
+            values.append(self._measure(frame))
+            best = int(np.argmax(values))
+            if stop_early and i - best >= 2 and values[-1] < self.stop_ratio * values[best] and values[-2] < values[best]:
+                log.debug("contrast scan: stopping after %d frames (peak passed)", i + 1)
+                break
+        return values
+
     def _fine_scan(self, machine: StateMachine, centre: float, px_per_dpt: float) -> Generator[Command, Observation, float]:
         """A second scan one coarse step wide around ``centre``, in steps of half
         ``fine_scan_px`` of blur: the coarse peak of a shallow depth of field is off by up to
@@ -188,12 +196,7 @@ class ContrastSearch:
         step = 0.5 * self.fine_scan_px / px_per_dpt
         n = max(3, int(math.ceil((b - a) / step - 1e-9)) + 1)
         powers = [float(p) for p in np.linspace(a, b, n)]
-        values = []
-        yield from machine._set_power(powers[0])
-        for i, p in enumerate(powers):
-            nxt = powers[i + 1] if i + 1 < len(powers) else None
-            frame, _ = yield from machine._capture("contrast", then_power_dpt=nxt, light=self.light)
-            values.append(self._measure(frame))
+        values = yield from self._sweep(machine, powers, stop_early=False)
         best = int(np.argmax(values))
         return _refine_peak(powers, values, best, (b - a) / (n - 1))
 

@@ -371,6 +371,11 @@ class DFDController(StateMachine):
         that pair), none for plain DFD (a policy above that lights the pair overrides this)."""
         return None
 
+    def _contrast_light(self) -> str | None:
+        """The light the fall-back contrast search's frames are taken under: none for plain DFD
+        (a policy above that lights the pair overrides this)."""
+        return None
+
     def _declare(self, t_s: float, evidence: str) -> None:
         """Focus is declared: the lens sits at ``result.power_dpt`` and ``evidence`` says why."""
         self.result.status = "focused"
@@ -424,6 +429,7 @@ class DFDController(StateMachine):
     def _contrast(self, centre_dpt: float | None) -> Gen:
         self.state = State.CONTRAST
         kwargs = dict(self.contrast_kwargs)
+        kwargs.setdefault("light", self._contrast_light())
         if centre_dpt is not None:  # a local search around the DFD answer
             kwargs.setdefault("span_dpt", (centre_dpt - 0.6, centre_dpt + 0.6))
         search = ContrastSearch(self.camera, roi=self.roi, **kwargs)

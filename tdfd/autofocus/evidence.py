@@ -34,7 +34,7 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InputError
 from .aggregate import DepthAggregate
-from .relative_blur import relative_blur_px2, relative_blur_search_px2, search_margin_px
+from .relative_blur import relative_blur_px2, relative_blur_search_px2
 from .roi import Roi
 
 __all__ = [
@@ -124,8 +124,13 @@ def estimate_uncertainty(aggregate: DepthAggregate, confidence: np.ndarray, mask
     return FocusUncertainty(rel, model, aggregate.spread_dpt, sigma, sigma * blur_px_per_dpt(camera))
 
 
-# ------------------------------------------------------------------ relative blur
 # ------------------------------------------------------------------ verification
+def _search_px2(camera: Camera, max_px2: float | None) -> float:
+    """The relative-blur search range: ``max_px2`` if given, else the camera's
+    (:func:`relative_blur_search_px2`)."""
+    return relative_blur_search_px2(camera) if max_px2 is None else float(max_px2)
+
+
 @dataclass(frozen=True)
 class FocusCheck:
     """The verdict on a verification frame.
@@ -198,8 +203,8 @@ def verify_focus(frame: np.ndarray, power_dpt: float, references: Sequence[tuple
         return FocusCheck(False, math.nan, math.inf, False, (), "no reference frame at another power")
     bi = np.array([frames[i][1] for i, _ in pairs])
     bj = np.array([frames[j][1] for _, j in pairs])
-    search = relative_blur_search_px2(camera) if max_px2 is None else float(max_px2)
-    d = np.array([relative_blur_px2(frames[i][0], frames[j][0], roi, max_px2=search, margin_px=search_margin_px(search))
+    search = _search_px2(camera, max_px2)
+    d = np.array([relative_blur_px2(frames[i][0], frames[j][0], roi, max_px2=search)
                   for i, j in pairs])  # sigma_j^2 - sigma_i^2
     sd = noise_px2 + relative_noise * np.abs(d)
     a = bj - bi
@@ -250,8 +255,7 @@ def pair_focus_interval(image_f1: np.ndarray, power_f1_dpt: float, image_f2: np.
     if abs(dp) < 0.02:
         raise InputError("the DFD pair needs two different powers")
     m2 = sigma_px_per_dpt(camera) ** 2
-    search = relative_blur_search_px2(camera) if max_px2 is None else float(max_px2)
-    d = relative_blur_px2(image_f1, image_f2, roi, max_px2=search, margin_px=search_margin_px(search))
+    d = relative_blur_px2(image_f1, image_f2, roi, max_px2=_search_px2(camera, max_px2))
     sd = noise_px2 + relative_noise * abs(d)
     mid = 0.5 * (float(power_f1_dpt) + float(power_f2_dpt))
     cands = [mid - dd / (2.0 * a * m2 * dp) for a in shape_range for dd in (d - z * sd, d + z * sd)]

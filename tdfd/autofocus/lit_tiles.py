@@ -63,12 +63,16 @@ def pattern_contrast(lit: np.ndarray, ambient: np.ndarray, tile: int, stride: in
     a, b = np.asarray(lit, dtype=np.float64), np.asarray(ambient, dtype=np.float64)
     if a.shape != b.shape or a.ndim != 2:
         raise ShapeError(f"lit and ambient frames must be (H, W) of one shape, got {a.shape} and {b.shape}")
-    if min(a.shape) < tile:
-        raise ShapeError(f"frames {a.shape} are smaller than one {tile} px tile")
-    h, w = (a.shape[0] - tile) // stride + 1, (a.shape[1] - tile) // stride + 1  # CONTRACT.md section 2
     diff = a - b
-    win = np.lib.stride_tricks.sliding_window_view(diff, (tile, tile))[::stride, ::stride][:h, :w]
-    return win.std(axis=(-2, -1)), difference_noise_sigma(diff)
+    return _tile_std(diff, tile, stride), difference_noise_sigma(diff)
+
+
+def _cue_mask(std: np.ndarray, sigma: float, k_noise: float, rel: float) -> np.ndarray:
+    """The tiles whose contrast (``std`` less the noise ``sigma``) stands ``k_noise`` sigmas
+    clear of the noise and at least ``rel`` of the strongest tile's."""
+    signal = np.sqrt(np.clip(std**2 - sigma**2, 0.0, None))
+    peak = float(signal.max()) if signal.size else 0.0
+    return (signal > k_noise * sigma) & (signal >= rel * peak) & (signal > 0)
 
 
 def lit_tile_mask(lit: np.ndarray, ambient: np.ndarray, tile: int, stride: int, k_noise: float = 3.0,
@@ -82,12 +86,11 @@ def lit_tile_mask(lit: np.ndarray, ambient: np.ndarray, tile: int, stride: int, 
         rel: pattern contrast needed, as a fraction of the strongest tile's.
     """
     std, sigma = pattern_contrast(lit, ambient, tile, stride)
-    signal = np.sqrt(np.clip(std**2 - sigma**2, 0.0, None))
-    peak = float(signal.max()) if signal.size else 0.0
-    return (signal > k_noise * sigma) & (signal >= rel * peak) & (signal > 0)
+    return _cue_mask(std, sigma, k_noise, rel)
 
 
 def _tile_std(image: np.ndarray, tile: int, stride: int) -> np.ndarray:
+    """Per-tile standard deviation of an ``(H, W)`` image on the tile grid ``(h, w)``."""
     x = np.asarray(image, dtype=np.float64)
     if x.ndim != 2:
         raise ShapeError(f"frames must be (H, W), got {x.shape}")
@@ -127,14 +130,8 @@ def pair_cue_mask(image_f1: np.ndarray, image_f2: np.ndarray, tile: int, stride:
     a, b = np.asarray(image_f1, dtype=np.float64), np.asarray(image_f2, dtype=np.float64)
     if a.shape != b.shape:
         raise ShapeError(f"the two frames must have one shape, got {a.shape} and {b.shape}")
-    out = None
-    for x in (a, b):
-        std, sigma = _tile_std(x, tile, stride), difference_noise_sigma(x)
-        signal = np.sqrt(np.clip(std**2 - sigma**2, 0.0, None))
-        peak = float(signal.max()) if signal.size else 0.0
-        m = (signal > k_noise * sigma) & (signal >= rel * peak) & (signal > 0)
-        out = m if out is None else out | m
-    return out
+    return (_cue_mask(_tile_std(a, tile, stride), difference_noise_sigma(a), k_noise, rel)
+            | _cue_mask(_tile_std(b, tile, stride), difference_noise_sigma(b), k_noise, rel))
 
 
 def pool_lit_tiles(depth_m: np.ndarray, confidence: np.ndarray, lit: np.ndarray,

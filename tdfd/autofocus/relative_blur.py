@@ -67,7 +67,7 @@ def search_margin_px(max_px2: float) -> int:
 
 
 def relative_blur_px2(image_a: np.ndarray, image_b: np.ndarray, roi: Roi | None = None, *,
-                      max_px2: float = 64.0, margin_px: int = 12) -> float:
+                      max_px2: float = MIN_SEARCH_PX2, margin_px: int | None = None) -> float:
     r"""Difference of Gaussian blur variances ``sigma_b^2 - sigma_a^2`` (px²) of two frames of one scene.
 
     The sharper frame is blurred by a Gaussian of variance ``|D|`` until it matches the
@@ -82,7 +82,8 @@ def relative_blur_px2(image_a: np.ndarray, image_b: np.ndarray, roi: Roi | None 
         image_a, image_b: ``(H, W)`` linear intensity, same scene and exposure.
         roi: region (default: the whole frame).
         max_px2: the search range ``|D| <= max_px2``.
-        margin_px: border excluded from the residual (px).
+        margin_px: border excluded from the residual (px; default :func:`search_margin_px` of
+            ``max_px2``, 12 px for 64 px²).
 
     Example:
         >>> import cv2
@@ -98,6 +99,8 @@ def relative_blur_px2(image_a: np.ndarray, image_b: np.ndarray, roi: Roi | None 
         raise InputError(f"frames must be (H, W) of one shape, got {a.shape} and {b.shape}")
     if roi is not None:
         a, b = roi.crop(a), roi.crop(b)
+    if margin_px is None:
+        margin_px = search_margin_px(max_px2)
     if min(a.shape) <= 2 * margin_px + 8:
         raise InputError(f"ROI {a.shape} too small for the relative-blur measure (needs > {2 * margin_px + 8} px)")
     na, nb = noise_variance(a), noise_variance(b)
