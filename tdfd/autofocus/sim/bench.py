@@ -56,7 +56,7 @@ from ..estimators import suggested_confidence_scale, suggested_min_confidence
 from ..interfaces import Estimator
 from ..machine import StateMachine, drive
 from ..messages import AFResult
-from ..relative_blur import relative_blur_px2
+from ..relative_blur import relative_blur_px2, relative_blur_search_px2
 from ..roi import Roi, roi_crop_box
 from .camera import VirtualCamera
 from .clock import SimClock
@@ -152,17 +152,19 @@ class SimBench:
 
     def calibrate_evidence(self, repeats: int = 5) -> float:
         """Median wall time (s) of one relative-blur measurement on the ROI (the controller's evidence,
-        :func:`tdfd.autofocus.relative_blur.relative_blur_px2`), after one warm-up run."""
+        :func:`tdfd.autofocus.relative_blur.relative_blur_px2`, searched over the camera's range:
+        :func:`~tdfd.autofocus.relative_blur.relative_blur_search_px2`), after one warm-up run."""
         import cv2
 
         rng = np.random.default_rng(54321)
         a = cv2.GaussianBlur(rng.uniform(0.2, 0.8, self.readout_hw).astype(np.float32), (0, 0), 1.0)
         b = cv2.GaussianBlur(a, (0, 0), 2.0)
-        relative_blur_px2(a, b, self.roi)
+        search = relative_blur_search_px2(self.camera)
+        relative_blur_px2(a, b, self.roi, max_px2=search)
         times = []
         for _ in range(max(1, repeats)):
             t0 = time.perf_counter()
-            relative_blur_px2(a, b, self.roi)
+            relative_blur_px2(a, b, self.roi, max_px2=search)
             times.append(time.perf_counter() - t0)
         return float(np.median(times))
 
