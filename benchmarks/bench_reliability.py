@@ -73,9 +73,9 @@ CAUSES = (
     ("texture-less ROI: contrast search", lambda r: "texture-less target" in (r.reason or "")),
     ("model confidence too low: contrast search", lambda r: r.verified is None and "DFD confidence" in (r.reason or "")),
     ("verification: the reference frames disagree", lambda r: "reference frames disagree" in (r.reason or "")),
-    ("verification failed, model too uncertain (> 1 px) for the 3-frame estimate",
-     lambda r: "verification failed" in (r.reason or "") and (r.uncertainty_px or 0.0) > 1.0),
-    ("verification failed, model and verification frame disagree (or combined too uncertain)",
+    ("verification: the texture does not measure the relative blur",
+     lambda r: "does not measure the relative blur" in (r.reason or "")),
+    ("verification failed, its error (alone, or with the model's) too uncertain for the 3-frame estimate",
      lambda r: "verification failed" in (r.reason or "")),
     ("verification failed, the DFD step after it verified (4 frames)",
      lambda r: r.evidence == "verification" and r.refine_count > 0),
@@ -252,11 +252,16 @@ disagreement) maps to at most 0.25 px of blur and the DFD pair's own relative bl
 allows the model's in-focus power (2 frames); or a verification frame at that power
 confirms it (the relative blur between that frame and the DFD pair, measured on the ROI
 without the depth model, gives the focus error; it must be below 0.8 px of blur with two
-standard uncertainties; 3 frames); or, when it does not, the model's estimate and the
-verification frame's measured error agree (within 2 combined standard uncertainties, the
-model's own at most 1 px) and their weighted mean is known to 0.8 px with 2.5 standard
-uncertainties: the lens moves there and focus is declared without a further frame
-("3-frame estimate", 3 frames). Otherwise the lens moves by the measured error and verifies
+standard uncertainties; 3 frames); or, when it does not, the verification frame's measured
+error, weighted with the model's estimate where the two agree (within 2 combined standard
+uncertainties, the model's own at most 1 px), alone where the model is more uncertain than
+1 px and the frame's three relative blurs agree among themselves, is known to 0.8 px with
+2.5 standard uncertainties:
+the lens moves there and focus is declared without a further frame ("3-frame estimate",
+3 frames). Each relative blur carries the uncertainty of its own texture (the fit's Fisher
+information: a periodic or band-limited texture that a frame's blur has wiped out measures
+little) and all frames of a run share one noise estimate (the blurriest frame's, which a
+sharp periodic texture does not inflate). Otherwise the lens moves by the measured error and verifies
 once more; after that a contrast search around the estimate (+-0.6 dpt) decides, and a search
 whose peak rises less than 1.1x above its least sharp frame (sensor noise on a texture-less
 target) declares nothing ("not declared"). Thresholds tuned on bench seeds 10-21, never on the

@@ -437,18 +437,23 @@ def test_failed_verification_declares_on_the_three_frame_estimate():
     assert _blur_px(TRUE_DEPTH, res.power_dpt) < 0.5
 
 
-def test_three_frame_estimate_needs_both_opinions():
-    """No declaration on the three-frame estimate when the model's own uncertainty is above
-    ``refine_max_uncertainty_px``, or when the model confidently contradicts the verification frame."""
+def test_three_frame_estimate_without_the_model_is_the_verification_frames_own():
+    """When the model's uncertainty is above ``refine_max_uncertainty_px`` it takes no part:
+    the three-frame estimate is the verification frame's measured error alone (the declared
+    power is where that frame puts the focus). When the model confidently contradicts the
+    frame (0.25 dpt is many of its sigmas) one of the two is wrong: no three-frame estimate,
+    a further step (4 frames). ``combine_gate=0`` disables the three-frame estimate."""
     wrong = 1.0 / (1.0 / TRUE_DEPTH + 0.25)
     res = drive(DFDController(CAM, refine_max_uncertainty_px=0.6, fallback=False),
                 FakePlant(TRUE_DEPTH, scripted=(wrong, _conf_for(0.7, wrong))))
+    assert res.evidence == "refined" and res.frames == 3 and res.verified is False
+    assert res.power_dpt == pytest.approx(CAM.in_focus_power_dpt(wrong) - res.verify_error_dpt, abs=1e-6)
+    assert _blur_px(TRUE_DEPTH, res.power_dpt) < 0.5
+    res = drive(DFDController(CAM, fallback=False), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.95)))
     assert res.evidence != "refined" and res.frames == 4
     res = drive(DFDController(CAM, combine_gate=0.0, fallback=False),
                 FakePlant(TRUE_DEPTH, scripted=(wrong, _conf_for(0.7, wrong))))
     assert res.evidence != "refined" and res.frames == 4
-    res = drive(DFDController(CAM, fallback=False), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.95)))
-    assert res.evidence != "refined" and res.frames == 4  # 0.25 dpt is many of the confident model's sigmas
 
 
 def test_combine_focus_error():

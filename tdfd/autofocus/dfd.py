@@ -33,9 +33,10 @@ One single-shot DFD focus (paper sec. 3, "focal length as the varying parameter"
    ``Capture("verify")`` frame at ``P_e`` confirms it (its relative blur against the DFD
    pair, measured on the ROI without the depth model). A failed verification gives a
    measured focus error: when it and the model's estimate agree, their weighted mean
-   (:func:`~tdfd.autofocus.evidence.combine_focus_error`, the three-frame estimate) is
-   known well enough, the lens moves there and focus is declared (evidence
-   ``"refined"``, still 3 frames); otherwise the lens moves by the measured error and
+   (:func:`~tdfd.autofocus.evidence.combine_focus_error`, the three-frame estimate), or,
+   when the model is too uncertain to take part, the frame's measured error alone,
+   provided its three relative blurs agree among themselves, is known well enough, the lens moves there and focus is declared (evidence ``"refined"``, still 3
+   frames); otherwise the lens moves by the measured error and
    verifies again (``refine_steps``), then a contrast-detect search around ``P_e`` takes
    over (or, with ``fallback=False``, the run ends ``"unconfirmed"``); a search without a
    peak (``contrast_min_peak``) declares nothing.
@@ -89,8 +90,8 @@ from ..errors import DTypeError, InputError
 from ..pair_check import pair_problem
 from .aggregate import DepthAggregate, aggregate_depth
 from .contrast import ContrastSearch
-from .evidence import (blur_px_per_dpt, combine_focus_error, estimate_uncertainty, pair_focus_interval,
-                       verify_focus)
+from .evidence import (FocusEstimate, blur_px_per_dpt, combine_focus_error, estimate_uncertainty,
+                       pair_focus_interval, verify_focus)
 from .machine import Abort, Gen, StateMachine
 from .messages import Command, Estimate, Estimation, EstimateFault, Frame, Observation, State
 from .roi import Roi, roi_crop_box, roi_tile_mask
@@ -120,7 +121,9 @@ class DFDController(StateMachine):
             :func:`tdfd.autofocus.estimators.suggested_confidence_scale`).
         verify_tolerance_px: the verification frame passes when its focus error, plus
             ``verify_z`` standard uncertainties, is at most this blur radius (px).
-        verify_z, shape_range: see :func:`tdfd.autofocus.evidence.verify_focus`.
+        verify_z, shape_range: see :func:`tdfd.autofocus.evidence.verify_focus`; the shape
+            factor's range (1.0-2.0) spans what a uniform disk's blur gives the Gaussian fit on
+            the bench's textures (1.1-2.0, median 1.35: docs/BENCHMARKS.md, ``reliability``).
         agree_px: without a verification frame, the model's in-focus power must also lie
             within this blur radius (px) of the interval the DFD pair allows on its own
             (:func:`tdfd.autofocus.evidence.pair_focus_interval`).
@@ -128,12 +131,14 @@ class DFDController(StateMachine):
             focus error the verification measured, verify again) before the contrast search.
         combine_gate: after a failed first verification, the model's estimate and the
             verification frame's are combined (:func:`~tdfd.autofocus.evidence.combine_focus_error`)
-            when they lie within this many combined standard uncertainties (0 disables).
+            when they lie within this many combined standard uncertainties (when they do not,
+            one of the two is wrong: a further step follows); 0 disables the three-frame
+            estimate.
         refine_z: the combined estimate is declared (after moving the lens to it) when
             ``refine_z`` of its standard uncertainties are within ``verify_tolerance_px``.
         refine_max_uncertainty_px: only a model estimate at most this uncertain (px) takes
-            part in the combined estimate (a less certain one would leave the verification
-            frame alone to decide).
+            part in the combined estimate; a less certain one leaves the verification
+            frame's own measured error as the three-frame estimate, if its references agree.
         contrast_min_peak: the contrast fall-back declares its peak only when the sharpest
             frame of the search is at least this many times the least sharp (else the run
             ends ``"unconfirmed"``: a texture-less target shows only noise).
@@ -167,7 +172,7 @@ class DFDController(StateMachine):
                  dry_run: bool = False, lens_retries: int = 2, capture_retries: int = 1,
                  power_limits_dpt: tuple[float, float] | None = None, grid: tuple[int, int] | None = None,
                  max_uncertainty_px: float = 0.25, confidence_scale: float = 0.01, verify_tolerance_px: float = 0.8,
-                 verify_z: float = 2.0, shape_range: tuple[float, float] = (1.0, 1.3), refine_steps: int = 1,
+                 verify_z: float = 2.0, shape_range: tuple[float, float] = (1.0, 2.0), refine_steps: int = 1,
                  agree_px: float = 0.5, combine_gate: float = 2.0, refine_z: float = 2.5,
                  refine_max_uncertainty_px: float = 1.0, contrast_min_peak: float = 1.1) -> None:
         super().__init__(settle_s, lens_retries, capture_retries, power_limits_dpt)
@@ -306,7 +311,7 @@ class DFDController(StateMachine):
         slack = self.agree_px / blur_px_per_dpt(self.camera)
         if confident:  # a second opinion: the pair's own relative blur must allow the model's power
             lo, hi = pair_interval()
-            res.pair_agrees = bool(lo - slack <= target <= hi + slack)
+            res.pair_agrees = bool(math.isfinite(lo) and math.isfinite(hi) and lo - slack <= target <= hi + slack)
             confident = res.pair_agrees
             log.info("DFD pair without the model: in-focus power %.3f..%.3f dpt; the model's %.3f dpt %s", lo, hi,
                      target, "agrees" if confident else "DISAGREES")
@@ -337,14 +342,22 @@ class DFDController(StateMachine):
                 return f1, f2
             res.verified = False
             references.append((fv.image, fv.power_dpt))
-            if step == 0 and self.combine_gate > 0 and unc.blur_px <= self.refine_max_uncertainty_px:
-                # the three-frame estimate: the model's (from the pair) and the verification frame's, weighted
-                est = combine_focus_error(check, unc.sigma_dpt, gate=self.combine_gate)
+            if step == 0 and self.combine_gate > 0:
+                # the three-frame estimate: the model's (from the pair) and the verification frame's, weighted;
+                # when the model is too uncertain to take part, the verification frame's alone if its own
+                # references agree (three relative blurs, two unknowns: a consistency check of its own);
+                # when the two disagree, one of them is wrong: no estimate, a further step
+                model_part = unc.blur_px <= self.refine_max_uncertainty_px
+                est = combine_focus_error(check, unc.sigma_dpt, gate=self.combine_gate) if model_part else None
+                if (not model_part and check.consistent and len(check.estimates) >= 3
+                        and math.isfinite(check.error_dpt)):
+                    est = FocusEstimate(check.error_dpt, check.sigma_dpt, math.nan)
                 goal = None if est is None else power - est.error_dpt
                 lo_p, hi_p = self.power_limits_dpt or (-math.inf, math.inf)
                 if est is not None and goal is not None and self.refine_z * est.sigma_dpt <= tol and lo_p <= goal <= hi_p:
-                    log.info("three-frame estimate: focus error %+.3f +- %.3f dpt (%.1f sigma between model and "
-                             "verification): declared at %.3f dpt", est.error_dpt, est.sigma_dpt, est.discrepancy, goal)
+                    log.info("three-frame estimate: focus error %+.3f +- %.3f dpt (%s): declared at %.3f dpt",
+                             est.error_dpt, est.sigma_dpt, "the verification frame's alone" if math.isnan(est.discrepancy)
+                             else f"{est.discrepancy:.1f} sigma between model and verification", goal)
                     res.refine_count += 1
                     if abs(goal - power) >= 0.005:
                         self.state = State.MOVE_FOCUS

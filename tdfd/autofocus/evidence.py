@@ -34,8 +34,9 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InputError
 from .aggregate import DepthAggregate
-from .relative_blur import relative_blur_px2, relative_blur_search_px2
+from .relative_blur import relative_blur, relative_blur_px2, relative_blur_search_px2
 from .roi import Roi
+from .sharpness import noise_variance
 
 __all__ = [
     "blur_px_per_dpt",
@@ -45,6 +46,7 @@ __all__ = [
     "estimate_uncertainty",
     "relative_blur_px2",
     "relative_blur_search_px2",
+    "shared_noise_variance",
     "FocusCheck",
     "verify_focus",
     "pair_focus_interval",
@@ -125,6 +127,25 @@ def estimate_uncertainty(aggregate: DepthAggregate, confidence: np.ndarray, mask
 
 
 # ------------------------------------------------------------------ verification
+def shared_noise_variance(frames: Sequence[np.ndarray], roi: Roi | None = None) -> float:
+    """The sensor noise variance the frames of one scene share: the smallest
+    :func:`~tdfd.autofocus.sharpness.noise_variance` of their ROIs.
+
+    The frames see one scene at one exposure, so their noise is the same; what differs is
+    how much of a sharp frame's texture leaks into the estimator's pass band (a sharp
+    checkerboard or stripe pattern can read 3-10x the true noise). The blurriest frame's
+    estimate is the least inflated, and an inflated estimate would bias
+    :func:`relative_blur_px2` towards zero (its noise correction would be too large).
+
+    Raises:
+        InputError: no frame.
+    """
+    if len(frames) == 0:
+        raise InputError("shared_noise_variance needs at least one frame")
+    crop = (lambda im: roi.crop(np.asarray(im, dtype=np.float32))) if roi is not None else np.asarray
+    return min(noise_variance(crop(im)) for im in frames)
+
+
 def _search_px2(camera: Camera, max_px2: float | None) -> float:
     """The relative-blur search range: ``max_px2`` if given, else the camera's
     (:func:`relative_blur_search_px2`)."""
@@ -155,17 +176,24 @@ class FocusCheck:
 def verify_focus(frame: np.ndarray, power_dpt: float, references: Sequence[tuple[np.ndarray, float]], camera: Camera,
                  roi: Roi | None = None, *, tolerance_dpt: float | None = None, z: float = 2.0,
                  noise_px2: float = 0.12, relative_noise: float = 0.06, shape_range: tuple[float, float] = (0.85, 1.5),
-                 consistency_sigmas: float = 3.0, max_px2: float | None = None) -> FocusCheck:
+                 consistency_sigmas: float = 3.0, max_px2: float | None = None,
+                 texture_factor: float = 2.0) -> FocusCheck:
     r"""Check a frame taken at ``power_dpt`` against frames of the same scene at other powers.
 
     Each reference frame ``(image, P_k)`` gives ``D_k`` (:func:`relative_blur_px2`), which
     the model ``D_k = alpha M^2 a_k (a_k + 2 e)``, ``a_k = P_k - P_v``, ties to the focus
     error ``e = P_v - P*``. ``alpha`` is the ratio of the fitted Gaussian's variance to the
-    blur's: 1 for a Gaussian PSF, about 1.28 for a uniform disk on the bench, unknown for a
+    blur's: 1 for a Gaussian PSF, 1.1-2.0 for a uniform disk on the bench depending on the
+    texture (the fit weighs the frequencies the texture has; median 1.35), unknown for a
     real lens, so it is fitted over ``shape_range`` together with ``e``: with two
     references at different powers both are determined (the ratio ``D_1 / D_2`` does not
     depend on ``alpha``); with one, the range of ``alpha`` widens the uncertainty. Each
-    ``D_k`` has the standard uncertainty ``noise_px2 + relative_noise |D_k|`` (px²).
+    ``D_k`` has the standard uncertainty ``noise_px2 + relative_noise |D_k|`` (px², the
+    bench's measured error model) combined with ``texture_factor`` times the measurement's
+    own, from the frames' texture (:class:`~tdfd.autofocus.relative_blur.RelativeBlur`):
+    a periodic or band-limited texture whose frequencies a frame's blur has wiped out
+    pins ``D_k`` down far less than a broadband one. All frames share one noise estimate
+    (:func:`shared_noise_variance`).
 
     The focus passes if ``|e| + z sigma_e <= tolerance_dpt`` and the references agree
     (their chi-square at the best ``alpha`` within ``consistency_sigmas`` per degree of
@@ -185,6 +213,9 @@ def verify_focus(frame: np.ndarray, power_dpt: float, references: Sequence[tuple
         consistency_sigmas: see above.
         max_px2: the relative-blur search range (px²; default
             :func:`relative_blur_search_px2` of ``camera``).
+        texture_factor: the weight of the texture-dependent uncertainty (the local Cramér-Rao
+            bound leaves out the fit's other errors; 2 covers 99 % of the bench's Gaussian-optics
+            measurements within 2.5 standard uncertainties).
 
     Raises:
         InputError: no reference frame.
@@ -201,12 +232,17 @@ def verify_focus(frame: np.ndarray, power_dpt: float, references: Sequence[tuple
         pairs.append((1, 2))
     if not pairs:
         return FocusCheck(False, math.nan, math.inf, False, (), "no reference frame at another power")
+    search = _search_px2(camera, max_px2)
+    nv = shared_noise_variance([im for im, _ in frames], roi)
+    meas = [relative_blur(frames[i][0], frames[j][0], roi, max_px2=search, noise_var=nv) for i, j in pairs]
+    informative = [k for k, m in enumerate(meas) if math.isfinite(m.sd_px2)]
+    if not informative:
+        return FocusCheck(False, math.nan, math.inf, False, (), "the texture does not measure the relative blur")
+    pairs, meas = [pairs[k] for k in informative], [meas[k] for k in informative]
     bi = np.array([frames[i][1] for i, _ in pairs])
     bj = np.array([frames[j][1] for _, j in pairs])
-    search = _search_px2(camera, max_px2)
-    d = np.array([relative_blur_px2(frames[i][0], frames[j][0], roi, max_px2=search)
-                  for i, j in pairs])  # sigma_j^2 - sigma_i^2
-    sd = noise_px2 + relative_noise * np.abs(d)
+    d = np.array([m.px2 for m in meas])  # sigma_j^2 - sigma_i^2
+    sd = np.hypot(noise_px2 + relative_noise * np.abs(d), texture_factor * np.array([m.sd_px2 for m in meas]))
     a = bj - bi
     alphas = np.linspace(shape_range[0], shape_range[1], 66)
     e_k = (d[None, :] / (alphas[:, None] * m2 * a[None, :]) - (bi + bj)[None, :]) / 2.0  # (alpha, pair)
@@ -233,7 +269,7 @@ def verify_focus(frame: np.ndarray, power_dpt: float, references: Sequence[tuple
 def pair_focus_interval(image_f1: np.ndarray, power_f1_dpt: float, image_f2: np.ndarray, power_f2_dpt: float,
                         camera: Camera, roi: Roi | None = None, *, shape_range: tuple[float, float] = (1.0, 1.3),
                         noise_px2: float = 0.12, relative_noise: float = 0.06, z: float = 2.0,
-                        max_px2: float | None = None) -> tuple[float, float]:
+                        max_px2: float | None = None, texture_factor: float = 2.0) -> tuple[float, float]:
     r"""The in-focus powers the DFD pair itself allows, measured without the depth model.
 
     ``D = sigma_2^2 - sigma_1^2`` (:func:`relative_blur_px2`) and
@@ -243,7 +279,8 @@ def pair_focus_interval(image_f1: np.ndarray, power_f1_dpt: float, image_f2: np.
     opinion on the model's estimate: a model that is confidently wrong lands outside it.
 
     ``max_px2``: the relative-blur search range (px², default
-    :func:`relative_blur_search_px2` of ``camera``).
+    :func:`relative_blur_search_px2` of ``camera``). ``D``'s uncertainty is
+    :func:`verify_focus`'s (``noise_px2``, ``relative_noise``, ``texture_factor``).
 
     Returns:
         ``(low, high)`` ECVFL powers (dpt).
@@ -255,8 +292,12 @@ def pair_focus_interval(image_f1: np.ndarray, power_f1_dpt: float, image_f2: np.
     if abs(dp) < 0.02:
         raise InputError("the DFD pair needs two different powers")
     m2 = sigma_px_per_dpt(camera) ** 2
-    d = relative_blur_px2(image_f1, image_f2, roi, max_px2=_search_px2(camera, max_px2))
-    sd = noise_px2 + relative_noise * abs(d)
+    m = relative_blur(image_f1, image_f2, roi, max_px2=_search_px2(camera, max_px2),
+                      noise_var=shared_noise_variance([image_f1, image_f2], roi))
+    d = m.px2
+    sd = math.hypot(noise_px2 + relative_noise * abs(d), texture_factor * m.sd_px2)
+    if not math.isfinite(sd):
+        return -math.inf, math.inf
     mid = 0.5 * (float(power_f1_dpt) + float(power_f2_dpt))
     cands = [mid - dd / (2.0 * a * m2 * dp) for a in shape_range for dd in (d - z * sd, d + z * sd)]
     return min(cands), max(cands)

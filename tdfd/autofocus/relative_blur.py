@@ -6,11 +6,16 @@ the two frames' Gaussian blur variances, ``sigma_b^2 - sigma_a^2`` (px²). The s
 texture cancels, so it is the controller's model-free evidence
 (:mod:`tdfd.autofocus.evidence`: the DFD pair's own in-focus interval, verification frames).
 :func:`relative_blur_search_px2` scales its search range to a camera's largest blur.
+:func:`relative_blur` also returns the measurement's standard uncertainty from the frames'
+own texture (the Fisher information of the fit): a texture whose frequencies the blur has
+wiped out (a periodic pattern past its first MTF zero, a band-limited one) pins the blur
+difference down far less than a broadband one, and says so.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -19,7 +24,8 @@ from ..errors import InputError
 from .roi import Roi
 from .sharpness import noise_variance
 
-__all__ = ["MIN_SEARCH_PX2", "relative_blur_px2", "relative_blur_search_px2", "search_margin_px"]
+__all__ = ["MIN_SEARCH_PX2", "RelativeBlur", "relative_blur", "relative_blur_px2", "relative_blur_search_px2",
+           "search_margin_px"]
 
 
 def _gauss(image: np.ndarray, s: float) -> np.ndarray:
@@ -37,6 +43,19 @@ def _kernel_energy(s: float) -> float:
     n = int(round(s * 4 * 2 + 1)) | 1  # OpenCV's kernel size for float images
     g = cv2.getGaussianKernel(n, s).ravel()
     return float((g * g).sum()) ** 2
+
+
+def _laplacian_energy(s: float) -> float:
+    """Sum of the squared taps of the 4-neighbour Laplacian of the Gaussian OpenCV applies
+    for ``s``: the variance of white noise of unit variance through both."""
+    import cv2
+
+    if s <= 1e-3:
+        return 20.0  # the 3x3 kernel [0 1 0; 1 -4 1; 0 1 0]
+    n = int(round(s * 4 * 2 + 1)) | 1
+    g = cv2.getGaussianKernel(n, s)
+    lap = cv2.Laplacian(np.pad((g @ g.T).astype(np.float64), 1), cv2.CV_64F, ksize=1, borderType=cv2.BORDER_CONSTANT)
+    return float((lap * lap).sum())
 
 
 #: The relative-blur search range never goes below this (px²): the reference camera's frames
@@ -66,9 +85,47 @@ def search_margin_px(max_px2: float) -> int:
     return max(12, int(math.ceil(1.5 * math.sqrt(max_px2))))
 
 
+@dataclass(frozen=True)
+class RelativeBlur:
+    """A relative blur measurement (:func:`relative_blur`).
+
+    Attributes:
+        px2: ``sigma_b^2 - sigma_a^2`` (px²).
+        sd_px2: its standard uncertainty from the sensor noise and the frames' texture (px²):
+            ``sqrt(noise / sum J^2)`` with ``J = d(blurred frame)/dD = Laplacian / 2`` (the
+            heat equation) over the residual's pixels, the Cramér-Rao bound of the fit. It
+            leaves out a mismatch of the PSF's shape (a pillbox fitted by a Gaussian), which
+            :func:`~tdfd.autofocus.evidence.verify_focus` models with its shape factor.
+        at_limit: the fit ended at the edge of its search range (the texture gave no minimum inside).
+    """
+
+    px2: float
+    sd_px2: float
+    at_limit: bool
+
+
 def relative_blur_px2(image_a: np.ndarray, image_b: np.ndarray, roi: Roi | None = None, *,
-                      max_px2: float = MIN_SEARCH_PX2, margin_px: int | None = None) -> float:
+                      max_px2: float = MIN_SEARCH_PX2, margin_px: int | None = None,
+                      noise_var: float | None = None) -> float:
     r"""Difference of Gaussian blur variances ``sigma_b^2 - sigma_a^2`` (px²) of two frames of one scene.
+
+    :func:`relative_blur`'s value alone; the arguments are its.
+
+    Example:
+        >>> import cv2
+        >>> rng = np.random.default_rng(0)
+        >>> scene = cv2.GaussianBlur(rng.random((96, 96)).astype(np.float32), (0, 0), 0.7)
+        >>> blurred = cv2.GaussianBlur(scene, (0, 0), 2.0)
+        >>> round(relative_blur_px2(scene, blurred))
+        4
+    """
+    return relative_blur(image_a, image_b, roi, max_px2=max_px2, margin_px=margin_px, noise_var=noise_var).px2
+
+
+def relative_blur(image_a: np.ndarray, image_b: np.ndarray, roi: Roi | None = None, *,
+                  max_px2: float = MIN_SEARCH_PX2, margin_px: int | None = None,
+                  noise_var: float | None = None) -> RelativeBlur:
+    r"""Difference of Gaussian blur variances ``sigma_b^2 - sigma_a^2`` (px²) of two frames of one scene, with its uncertainty.
 
     The sharper frame is blurred by a Gaussian of variance ``|D|`` until it matches the
     other in the least-squares sense, with the blurred noise's share of the residual
@@ -84,14 +141,22 @@ def relative_blur_px2(image_a: np.ndarray, image_b: np.ndarray, roi: Roi | None 
         max_px2: the search range ``|D| <= max_px2``.
         margin_px: border excluded from the residual (px; default :func:`search_margin_px` of
             ``max_px2``, 12 px for 64 px²).
+        noise_var: the sensor noise variance both frames share (intensity units squared;
+            default: :func:`~tdfd.autofocus.sharpness.noise_variance` of each frame's ROI,
+            which a sharp periodic texture inflates; pass the smallest estimate of the
+            frames of one scene, :func:`~tdfd.autofocus.evidence.shared_noise_variance`).
+
+    Returns:
+        A :class:`RelativeBlur`.
 
     Example:
         >>> import cv2
         >>> rng = np.random.default_rng(0)
         >>> scene = cv2.GaussianBlur(rng.random((96, 96)).astype(np.float32), (0, 0), 0.7)
-        >>> blurred = cv2.GaussianBlur(scene, (0, 0), 2.0)
-        >>> round(relative_blur_px2(scene, blurred))
-        4
+        >>> noisy = lambda im: im + 0.01 * rng.standard_normal(im.shape).astype(np.float32)
+        >>> m = relative_blur(noisy(scene), noisy(cv2.GaussianBlur(scene, (0, 0), 2.0)))
+        >>> round(m.px2), m.sd_px2 < 0.1
+        (4, True)
     """
     a = np.asarray(image_a, dtype=np.float32)
     b = np.asarray(image_b, dtype=np.float32)
@@ -103,7 +168,12 @@ def relative_blur_px2(image_a: np.ndarray, image_b: np.ndarray, roi: Roi | None 
         margin_px = search_margin_px(max_px2)
     if min(a.shape) <= 2 * margin_px + 8:
         raise InputError(f"ROI {a.shape} too small for the relative-blur measure (needs > {2 * margin_px + 8} px)")
-    na, nb = noise_variance(a), noise_variance(b)
+    if noise_var is None:
+        na, nb = noise_variance(a), noise_variance(b)
+    elif not (math.isfinite(noise_var) and noise_var >= 0):
+        raise InputError(f"noise_var must be finite and >= 0, got {noise_var}")
+    else:
+        na = nb = float(noise_var)
     inner = (slice(margin_px, -margin_px), slice(margin_px, -margin_px))
 
     def cost(d: float) -> float:
@@ -134,4 +204,14 @@ def relative_blur_px2(image_a: np.ndarray, image_b: np.ndarray, roi: Roi | None 
             lo, c, fc = c, d, fd
             d = lo + g * (hi - lo)
             fd = cost(d)
-    return 0.5 * (lo + hi)
+    est = 0.5 * (lo + hi)
+    # the fit's Fisher information: the blurred frame's change per px² of D is half its Laplacian
+    import cv2
+
+    s = math.sqrt(abs(est))
+    src, n_src, n_other = (a, na, nb) if est >= 0 else (b, nb, na)
+    lap = cv2.Laplacian(_gauss(src, s), cv2.CV_32F, ksize=1, borderType=cv2.BORDER_REFLECT)[inner]
+    j2 = 0.25 * (float(np.mean(lap.astype(np.float64) ** 2)) - n_src * _laplacian_energy(s))
+    noise = n_src * _kernel_energy(s) + n_other
+    sd = math.sqrt(noise / (lap.size * j2)) if j2 > 0 else math.inf
+    return RelativeBlur(est, sd, bool(abs(est) >= 0.95 * max_px2))

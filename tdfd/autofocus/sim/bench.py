@@ -152,7 +152,7 @@ class SimBench:
 
     def calibrate_evidence(self, repeats: int = 5) -> float:
         """Median wall time (s) of one relative-blur measurement on the ROI (the controller's evidence,
-        :func:`tdfd.autofocus.relative_blur.relative_blur_px2`, searched over the camera's range:
+        :func:`tdfd.autofocus.relative_blur.relative_blur` with its uncertainty, searched over the camera's range:
         :func:`~tdfd.autofocus.relative_blur.relative_blur_search_px2`), after one warm-up run."""
         import cv2
 
