@@ -21,9 +21,12 @@ from ..dfd import FourierRatioDFD
 
 __all__ = ["PairMeasurement", "measure_pair", "in_focus_power_from_pair", "PREDICTION_REGION_PX"]
 
-#: region side (px) of :func:`in_focus_power_from_pair`: large blur needs large windows
-#: (the Hann window's leakage fills the high frequencies a blurred frame lacks).
-PREDICTION_REGION_PX = 128
+#: region side (px) of :func:`in_focus_power_from_pair` and of the known-distance route's
+#: pair measurements: large blur needs large windows (the Hann window's leakage fills the
+#: high frequencies a blurred frame lacks), and a planar target's larger regions average
+#: more texture (192 px against 128: worst single-pair error 0.021 against 0.041 dpt over
+#: 42 pairs, docs/CALIBRATION.md).
+PREDICTION_REGION_PX = 192
 
 
 @dataclass(frozen=True)
@@ -72,10 +75,12 @@ def in_focus_power_from_pair(camera: Camera, image_1: np.ndarray, image_2: np.nd
     regions whose confidence is at least ``min_confidence`` times the best region's is
     returned, dioptres.
 
-    Regions are :data:`PREDICTION_REGION_PX` (128 px) by default: with 64-px regions the
+    Regions are :data:`PREDICTION_REGION_PX` (192 px) by default: with 64-px regions the
     estimator's error grows with the larger blur of the pair, to 0.03-0.13 dpt when it
     reaches 3.3-3.8 px (the range ends of docs/BENCHMARKS.md's calibration camera); 128-px
-    regions bring it under 0.02 dpt there (measured, docs/CALIBRATION.md).
+    regions bring it under 0.02 dpt there, and 192-px regions halve the worst scatter of a
+    single pair over a planar target (measured, docs/CALIBRATION.md). Frames smaller than
+    a region need ``region`` given.
     """
     b = register_to_power(image_2, power_2, power_1, magnification_per_dpt) if magnification_per_dpt else image_2
     est = _estimator(camera, power_1, power_2, region)
