@@ -23,8 +23,10 @@ Layers, bottom to top; a module imports only from its own layer or the ones belo
 2. Policies
 
    * :mod:`~tdfd.autofocus.contrast`: :class:`ContrastSearch`, :class:`ContrastController`.
-   * :mod:`~tdfd.autofocus.dfd`: :class:`DFDController` (declares focus only on its own
-     evidence; falls back to the contrast search).
+   * :mod:`~tdfd.autofocus.dfd`: :class:`DFDController` (the DFD step: pair, estimate,
+     move; falls back to the contrast search), with its declaration steps in
+     :mod:`~tdfd.autofocus.declaration` (focus declared only on its own evidence: the
+     estimate's uncertainty, a verification frame, the three-frame estimate).
    * :mod:`~tdfd.autofocus.assist`: ``AssistedDFDController``, DFD that lights the pair of a
      texture-less target with an assist light (:mod:`tdfd.light`), pooling the lit tiles
      (:mod:`~tdfd.autofocus.lit_tiles`).

@@ -90,8 +90,8 @@ from ..errors import DTypeError, InputError
 from ..pair_check import pair_problem
 from .aggregate import DepthAggregate, aggregate_depth
 from .contrast import ContrastSearch
-from .evidence import (FocusEstimate, blur_px_per_dpt, combine_focus_error, estimate_uncertainty,
-                       pair_focus_interval, verify_focus)
+from .declaration import FocusDeclaration
+from .evidence import estimate_uncertainty
 from .machine import Abort, Gen, StateMachine
 from .messages import Command, Estimate, Estimation, EstimateFault, Frame, Observation, State
 from .roi import Roi, roi_crop_box, roi_tile_mask
@@ -102,7 +102,7 @@ __all__ = ["DFDController"]
 log = logging.getLogger(__name__)
 
 
-class DFDController(StateMachine):
+class DFDController(FocusDeclaration, StateMachine):
     """Single-shot (or continuous) depth-from-defocus autofocus.
 
     Args:
@@ -293,91 +293,7 @@ class DFDController(StateMachine):
         ack = yield from self._set_power(power)
         res.power_dpt = power
         res.history.append((ack.ready_s, power, agg.depth_m))
-        confident = unc.blur_px <= self.max_uncertainty_px
-        interval: list[tuple[float, float]] = []
-
-        def pair_interval() -> tuple[float, float]:
-            """The in-focus powers the DFD pair allows without the model (measured once)."""
-            if not interval:
-                try:
-                    res.blur_measurements += 1
-                    interval.append(pair_focus_interval(f1.image, f1.power_dpt, f2.image, f2.power_dpt, self.camera,
-                                                        roi, shape_range=self.shape_range))
-                except InputError as exc:
-                    interval.append((math.inf, -math.inf))
-                    log.info("no pair check: %s", exc)
-            return interval[0]
-
-        slack = self.agree_px / blur_px_per_dpt(self.camera)
-        if confident:  # a second opinion: the pair's own relative blur must allow the model's power
-            lo, hi = pair_interval()
-            res.pair_agrees = bool(math.isfinite(lo) and math.isfinite(hi) and lo - slack <= target <= hi + slack)
-            confident = res.pair_agrees
-            log.info("DFD pair without the model: in-focus power %.3f..%.3f dpt; the model's %.3f dpt %s", lo, hi,
-                     target, "agrees" if confident else "DISAGREES")
-        log.info("DFD uncertainty: %.2f px of blur (model %.3f dpt, tiles %.3f dpt): %s", unc.blur_px, unc.model_dpt,
-                 unc.spread_dpt, "declare" if confident and self.verify != "always" else "verify")
-        if confident and self.verify != "always":
-            self._declare(ack.ready_s, "uncertainty")
-            return f1, f2
-        if self.verify == "never":
-            reason = (f"DFD uncertainty {unc.blur_px:.2f} px above {self.max_uncertainty_px:g} px and no "
-                      "verification frame allowed")
-            return (yield from self._not_confirmed(reason, power, (f1, f2)))
-        references = [(f1.image, f1.power_dpt), (f2.image, f2.power_dpt)]
-        roi_v = self._roi_for(f1.image.shape[-2:])
-        tol = self.verify_tolerance_px / blur_px_per_dpt(self.camera)
-        for step in range(self.refine_steps + 1):
-            self.state = State.VERIFY
-            fv, _ = yield from self._capture("verify", light=self._verify_light())
-            check = verify_focus(fv.image, fv.power_dpt, references, self.camera, roi_v,
-                                 tolerance_dpt=tol, z=self.verify_z, shape_range=self.shape_range)
-            res.verify_error_dpt = check.error_dpt
-            res.blur_measurements += len(check.estimates)
-            log.info("verify %d at %.3f dpt: focus error %+.3f +- %.3f dpt: %s", step + 1, power, check.error_dpt,
-                     check.sigma_dpt, "ok" if check.passed else check.reason)
-            if check.passed:
-                res.verified = True
-                self._declare(fv.t_ready_s, "verification")
-                return f1, f2
-            res.verified = False
-            references.append((fv.image, fv.power_dpt))
-            if step == 0 and self.combine_gate > 0:
-                # the three-frame estimate: the model's (from the pair) and the verification frame's, weighted;
-                # when the model is too uncertain to take part, the verification frame's alone if its own
-                # references agree (three relative blurs, two unknowns: a consistency check of its own);
-                # when the two disagree, one of them is wrong: no estimate, a further step
-                model_part = unc.blur_px <= self.refine_max_uncertainty_px
-                est = combine_focus_error(check, unc.sigma_dpt, gate=self.combine_gate) if model_part else None
-                if (not model_part and check.consistent and len(check.estimates) >= 3
-                        and math.isfinite(check.error_dpt)):
-                    est = FocusEstimate(check.error_dpt, check.sigma_dpt, math.nan)
-                goal = None if est is None else power - est.error_dpt
-                lo_p, hi_p = self.power_limits_dpt or (-math.inf, math.inf)
-                if est is not None and goal is not None and self.refine_z * est.sigma_dpt <= tol and lo_p <= goal <= hi_p:
-                    log.info("three-frame estimate: focus error %+.3f +- %.3f dpt (%s): declared at %.3f dpt",
-                             est.error_dpt, est.sigma_dpt, "the verification frame's alone" if math.isnan(est.discrepancy)
-                             else f"{est.discrepancy:.1f} sigma between model and verification", goal)
-                    res.refine_count += 1
-                    if abs(goal - power) >= 0.005:
-                        self.state = State.MOVE_FOCUS
-                        ack = yield from self._set_power(goal)
-                        t_declare = ack.ready_s
-                        res.history.append((ack.ready_s, goal, None))
-                    else:
-                        t_declare = fv.t_ready_s
-                    res.power_dpt = goal
-                    self._declare(t_declare, "refined")
-                    return f1, f2
-            if step == self.refine_steps or not (check.consistent and math.isfinite(check.error_dpt)):
-                break
-            power = self.check_power(power - check.error_dpt)  # a further DFD step with the verification frame
-            res.refine_count += 1
-            self.state = State.MOVE_FOCUS
-            ack = yield from self._set_power(power)
-            res.power_dpt = power
-            res.history.append((ack.ready_s, power, None))
-        return (yield from self._not_confirmed(f"verification failed: {check.reason}", power, (f1, f2)))
+        return (yield from self._declare_or_verify(target, power, ack.ready_s, unc, f1, f2, roi))
 
     def _verify_light(self) -> str | None:
         """The light a verification frame is taken under: the DFD pair's (it is compared with
@@ -387,29 +303,6 @@ class DFDController(StateMachine):
     def _contrast_light(self) -> str | None:
         """The light the fall-back contrast search's frames are taken under: none for plain DFD
         (a policy above that lights the pair overrides this)."""
-        return None
-
-    def _declare(self, t_s: float, evidence: str) -> None:
-        """Focus is declared: the lens sits at ``result.power_dpt`` and ``evidence`` says why."""
-        self.result.status = "focused"
-        self.result.evidence = evidence
-        self.result.t_focus_s = t_s
-
-    def _not_confirmed(self, reason: str, power: float, pair: tuple[Frame, Frame]
-                       ) -> Generator[Command, Observation, tuple[Frame, Frame] | None]:
-        """The DFD focus could not be confirmed: a contrast-detect search around it, or no declaration."""
-        res = self.result
-        res.fallback_reason = reason
-        if not self.fallback:
-            log.warning("%s: focus not declared", reason)
-            res.status = "unconfirmed"
-            res.t_focus_s = None
-            return None
-        # around the estimate: a scan of the whole range did no better on the reliability benchmark
-        # (9 declared out of focus in 1000 against 8; both are the contrast search's false peaks on
-        # low-frequency textures) and costs more frames
-        log.warning("%s: contrast-detect AF decides around %.3f dpt", reason, power)
-        yield from self._contrast(power)
         return None
 
     @staticmethod
