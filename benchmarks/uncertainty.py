@@ -19,7 +19,8 @@ import torch
 
 from tdfd.errors import InputError
 
-__all__ = ["laplace_mixture_median", "decile_table", "plot_calibration", "CALIBRATION_TOLERANCE"]
+__all__ = ["laplace_mixture_median", "decile_table", "fit_scale_remap", "apply_scale_remap", "plot_calibration",
+           "CALIBRATION_TOLERANCE"]
 
 #: the target: observed / predicted within 20 % in every decile (issue 19)
 CALIBRATION_TOLERANCE = 0.2
@@ -90,6 +91,70 @@ def decile_table(confidence: torch.Tensor, scale: torch.Tensor, error: torch.Ten
                      "within": float((e[part] <= b[part] * math.log(2.0)).double().mean()),
                      "ok": abs(ratio - 1.0) <= CALIBRATION_TOLERANCE})
     return rows
+
+
+def fit_scale_remap(scale: torch.Tensor, error: torch.Tensor, bins: int = 20) -> tuple[torch.Tensor, torch.Tensor]:
+    """A monotone post-hoc remap of the predicted scale that makes it match the observed errors.
+
+    The tiles are split into ``bins`` equal-count bins by ``b``; in each, the factor ``f``
+    that makes the Laplace mixture median of ``f b`` equal the observed median ``|e|`` moves
+    the bin's median ``b`` to a knot ``b'``; the knots are made non-decreasing in ``b`` (a
+    remap must keep the confidence's order).
+
+    Args:
+        scale: ``(N,)`` predicted Laplace scale ``b`` (> 0).
+        error: ``(N,)`` observed signed relative error.
+        bins: number of bins.
+
+    Returns:
+        ``(log_b, log_b_remapped)`` knots, ``(bins,)`` each, increasing in ``log_b``.
+
+    Raises:
+        InputError: shapes differ, fewer tiles than bins, or a scale that is not positive and finite.
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> b = torch.rand(20000, generator=g, dtype=torch.float64) * 0.05 + 0.01
+        >>> u = torch.rand(20000, generator=g, dtype=torch.float64) - 0.5
+        >>> e = 2 * b * -u.sign() * torch.log1p(-2 * u.abs())  # Laplace errors of scale 2 b
+        >>> kb, kr = fit_scale_remap(b, e, bins=10)
+        >>> bool(((kr - kb).exp() - 2).abs().max() < 0.25)  # errors twice the predicted: factor 2
+        True
+    """
+    b = torch.as_tensor(scale, dtype=torch.float64).flatten()
+    e = torch.as_tensor(error, dtype=torch.float64).flatten().abs()
+    if b.numel() != e.numel():
+        raise InputError(f"scale and error must have as many values, got {b.numel()} and {e.numel()}")
+    if bins < 1 or b.numel() < bins:
+        raise InputError(f"need at least {bins} tiles for {bins} bins, got {b.numel()}")
+    if not bool(((b > 0) & torch.isfinite(b)).all()):
+        raise InputError("scale must be positive and finite")
+    order = torch.argsort(b, stable=True)
+    log_b, log_r = [], []
+    for part in torch.tensor_split(order, bins):
+        factor = float(e[part].median()) / laplace_mixture_median(b[part])
+        mid = float(b[part].median())
+        log_b.append(math.log(mid))
+        log_r.append(math.log(max(mid * factor, 1e-300)))
+    kb = torch.tensor(log_b, dtype=torch.float64)
+    kr = torch.cummax(torch.tensor(log_r, dtype=torch.float64), 0).values
+    return kb, kr
+
+
+def apply_scale_remap(scale: torch.Tensor, remap: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    """``b'`` of :func:`fit_scale_remap`'s knots: piecewise linear in ``log b``, the end knots'
+    factors held beyond them."""
+    kb, kr = remap
+    lb = torch.as_tensor(scale, dtype=torch.float64).log()
+    x = lb.clamp(float(kb[0]), float(kb[-1]))
+    idx = torch.searchsorted(kb, x).clamp(1, kb.numel() - 1) if kb.numel() > 1 else torch.zeros_like(x, dtype=torch.long)
+    if kb.numel() == 1:
+        shift = (kr[0] - kb[0]).expand_as(lb)
+    else:
+        x0, x1, y0, y1 = kb[idx - 1], kb[idx], kr[idx - 1] - kb[idx - 1], kr[idx] - kb[idx]
+        w = ((x - x0) / (x1 - x0).clamp_min(1e-12)).clamp(0, 1)
+        shift = y0 + w * (y1 - y0)
+    return (lb + shift).exp()
 
 
 def plot_calibration(tables: dict[str, list[dict]], path: Path, title: str = "") -> None:
