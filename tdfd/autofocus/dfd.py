@@ -242,7 +242,11 @@ class DFDController(FocusDeclaration, StateMachine):
         if self.grid is not None and min(f1.image.shape[-2:]) >= self.grid[0]:
             y0, y1, x0, x1 = roi_crop_box(roi, f1.image.shape[-2:], *self.grid)
             im1, im2, offset = im1[..., y0:y1, x0:x1], im2[..., y0:y1, x0:x1], (y0, x0)
-        obs = yield Estimate(im1, im2, offset)
+        centre = None
+        if offset != (0, 0) or im1.shape[-2:] != f1.image.shape[-2:]:  # a crop: where the frame's centre lies in it
+            H, W = f1.image.shape[-2:]
+            centre = ((H - 1) / 2.0 - offset[0], (W - 1) / 2.0 - offset[1])
+        obs = yield Estimate(im1, im2, offset, centre)
         self._halt(obs)
         if isinstance(obs, EstimateFault):
             self._note_time(obs.t_s)

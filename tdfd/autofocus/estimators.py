@@ -110,6 +110,9 @@ class OnnxEstimator:
         path: the file.
         backend: ``"tdfd.runtime"``.
         last_problem: why the last pair was no DFD pair, or ``None``.
+        takes_optical_centre: ``True``: a crop's ``optical_centre`` is passed on to the
+            runtime, which moves each frame by its breathing translation when the model
+            registers breathing (``DepthRuntime(..., optical_centre=)``).
         min_confidence: suggested ROI-confidence threshold for autofocus (see
             :func:`suggested_min_confidence`), tuned on the bench with the reference model
             on targets apart from the benchmark's.
@@ -121,6 +124,7 @@ class OnnxEstimator:
     """
 
     backend = "tdfd.runtime"
+    takes_optical_centre = True
 
     def __init__(self, path: str | Path | None = None, threads: int = ONNX_INTRA_THREADS,
                  camera: Camera | str | Path | None = None) -> None:
@@ -135,9 +139,12 @@ class OnnxEstimator:
         self.last_problem: str | None = None
         self.confidence_scale = _confidence_scale(self._runtime.metadata.get(MODEL_KEY))
 
-    def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Depth (m) and confidence, each ``(h, w)``, for one pair of ``(H, W)`` frames."""
-        res = self._runtime(_as_frame(image_f1, "image_f1"), _as_frame(image_f2, "image_f2"))
+    def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray,
+                 optical_centre: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Depth (m) and confidence, each ``(h, w)``, for one pair of ``(H, W)`` frames
+        (``optical_centre``: where the optical centre lies in them, when they are a crop)."""
+        centre = optical_centre if self._runtime.magnification_per_dpt else None  # no breathing: nothing to move
+        res = self._runtime(_as_frame(image_f1, "image_f1"), _as_frame(image_f2, "image_f2"), optical_centre=centre)
         self.last_problem = res.problem
         depth, conf = res.depth, res.confidence
         return np.asarray(depth, np.float32).reshape(np.shape(depth)[-2:]), np.asarray(conf, np.float32).reshape(np.shape(conf)[-2:])

@@ -39,7 +39,7 @@ from .assist import AssistedDFDController
 from .contrast import ContrastController
 from .dfd import DFDController
 from .estimators import suggested_confidence_scale, suggested_min_confidence
-from .interfaces import Estimator
+from .interfaces import Estimator, run_estimator
 from .lens_command import command_lens
 from .machine import StateMachine, drive
 from .messages import (
@@ -222,7 +222,7 @@ class HardwarePlant:
             return EstimateFault("no depth estimator", self.clock())
         t0 = self.clock()
         try:
-            depth, conf = self.estimator(cmd.image_f1, cmd.image_f2)
+            depth, conf = run_estimator(self.estimator, cmd)
         except TdfdError as exc:
             return EstimateFault(f"{type(exc).__name__}: {exc}", self.clock())
         t1 = self.clock()

@@ -14,7 +14,7 @@ import numpy as np
 from ..camera import Camera
 from .messages import Capture, CaptureFault, Estimate, Estimation, EstimateFault, Frame, LensAck, LensFault, SetPower
 
-__all__ = ["Estimator", "Plant"]
+__all__ = ["Estimator", "Plant", "run_estimator"]
 
 
 @runtime_checkable
@@ -32,7 +32,12 @@ class Estimator(Protocol):
     stride: int
 
     def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(H, W)`` float32 linear intensity in [0, 1] each -> ``(depth_m, confidence)``, each ``(h, w)``."""
+        """``(H, W)`` float32 linear intensity in [0, 1] each -> ``(depth_m, confidence)``, each ``(h, w)``.
+
+        An estimator that registers focus breathing sets ``takes_optical_centre = True`` and
+        accepts ``optical_centre=(row, col)``: where the optical centre lies in the images'
+        pixels (:func:`run_estimator`).
+        """
         ...
 
 
@@ -49,3 +54,13 @@ class Plant(Protocol):
     def should_halt(self) -> bool: ...
 
     def now(self) -> float: ...
+
+
+def run_estimator(estimator: Estimator, cmd: Estimate) -> tuple[np.ndarray, np.ndarray]:
+    """Run ``estimator`` on an :class:`~tdfd.autofocus.messages.Estimate` command: its crop's
+    ``optical_centre`` goes along to an estimator that takes it (``takes_optical_centre``:
+    one that registers focus breathing, which must register about the optical centre, not
+    the crop's); any other gets the two images only."""
+    if cmd.optical_centre is not None and getattr(estimator, "takes_optical_centre", False):
+        return estimator(cmd.image_f1, cmd.image_f2, optical_centre=cmd.optical_centre)  # type: ignore[call-arg]
+    return estimator(cmd.image_f1, cmd.image_f2)

@@ -83,12 +83,16 @@ class Estimate:
     """Run the depth estimator on ``(image_f1, image_f2)`` (frames at ``P_e1``, ``P_e2``).
 
     ``offset`` is the ``(row, column)`` of the images' origin in the frame when they are a
-    crop around the ROI.
+    crop around the ROI; ``optical_centre`` the ``(row, column)`` of the frame's centre in
+    the images' pixels then (``None``: the images' own centre). An estimator that registers
+    focus breathing registers about it (a crop off the optical centre also needs the
+    breathing's translation; :func:`~tdfd.autofocus.interfaces.run_estimator`).
     """
 
     image_f1: np.ndarray
     image_f2: np.ndarray
     offset: tuple[int, int] = (0, 0)
+    optical_centre: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)

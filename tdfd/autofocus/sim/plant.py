@@ -10,7 +10,7 @@ import numpy as np
 
 from ...errors import InputError, TdfdError
 from ...light.guard import LightGuard, exposure
-from ..interfaces import Estimator
+from ..interfaces import Estimator, run_estimator
 from ..messages import Capture, CaptureFault, Estimate, Estimation, EstimateFault, Frame, LensAck, LensFault, SetPower
 from .camera import VirtualCamera
 from .clock import SimClock
@@ -93,7 +93,7 @@ class BenchPlant:
             return EstimateFault("no depth estimator", self.clock.now())
         t0 = time.perf_counter()
         try:
-            depth, conf = self.estimator(cmd.image_f1, cmd.image_f2)
+            depth, conf = run_estimator(self.estimator, cmd)
         except TdfdError as exc:
             return EstimateFault(f"{type(exc).__name__}: {exc}", self.clock.now())
         wall = time.perf_counter() - t0
