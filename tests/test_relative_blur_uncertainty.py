@@ -125,3 +125,38 @@ def test_a_flat_scene_measures_nothing_and_verification_says_why():
     assert not check.passed and not check.consistent and math.isnan(check.error_dpt)
     assert "does not measure the relative blur" in check.reason
     assert pair_focus_interval(flat, p1, flat, p2, cam) == (-math.inf, math.inf)
+
+
+def test_a_verification_frame_less_sharp_than_a_reference_never_passes():
+    """The paper camera (4x binned), a frame at focus checked against the DFD pair and a
+    first verification frame 0.3 dpt off: it passes, being the sharpest (ratio r > 1 to its
+    sharpest reference); asked to be 2r as sharp it fails, its references counted as not
+    agreeing (the rule that stops a periodic texture's misleading relative blurs from
+    declaring a frame in focus that a reference out-sharpens); ``min_sharpness_ratio=0``
+    disables the rule."""
+    from tdfd.autofocus.evidence import sigma_px_per_dpt
+    from tdfd.autofocus.sharpness import sharpness
+
+    paper = Camera.preset("paper")
+    PAPER4 = paper.replace(pixel_pitch_m=4 * paper.pixel_pitch_m, sensor_size_px=(300, 400),
+                           mu_px_per_m=1 / (2 * 4 * paper.pixel_pitch_m), name="paper4")  # as paper_experiment bins it
+    rng = np.random.default_rng(1)
+    sharp = (0.2 + 0.6 * cv2.GaussianBlur(rng.random((256, 256)).astype(np.float32), (0, 0), 1.0)).astype(np.float32)
+
+    def paper_frames(p_star: float, powers: list[float]) -> list[np.ndarray]:  # Gaussian blur M |P - P*| (eq. 7)
+        return [blurred(sharp, sigma_px_per_dpt(PAPER4) * abs(p - p_star)) for p in powers]
+
+    p1, p2 = PAPER4.lens_powers_dpt
+    p_star = p2 + 0.8
+    v_ok, v_first, f1, f2 = paper_frames(p_star, [p_star + 0.005, p_star + 0.3, p1, p2])
+    refs = [(f1, p1), (f2, p2), (v_first, p_star + 0.3)]
+    tol = 0.8 / 23.113
+    r = sharpness(v_ok) / max(sharpness(im) for im, _ in refs)
+    assert r > 1.0
+    ok = verify_focus(v_ok, p_star + 0.005, refs, PAPER4, tolerance_dpt=tol)
+    assert ok.passed and ok.consistent, ok.reason
+    strict = verify_focus(v_ok, p_star + 0.005, refs, PAPER4, tolerance_dpt=tol, min_sharpness_ratio=2 * r)
+    assert not strict.passed and not strict.consistent and "less sharp than a reference" in strict.reason
+    assert strict.error_dpt == ok.error_dpt  # the relative blurs are the same; only the verdict changes
+    off = verify_focus(v_ok, p_star + 0.005, refs, PAPER4, tolerance_dpt=tol, min_sharpness_ratio=0.0)
+    assert off.passed

@@ -36,7 +36,7 @@ from ..errors import InputError
 from .aggregate import DepthAggregate
 from .relative_blur import relative_blur, relative_blur_px2, relative_blur_search_px2
 from .roi import Roi
-from .sharpness import noise_variance
+from .sharpness import noise_variance, sharpness
 
 __all__ = [
     "blur_px_per_dpt",
@@ -177,7 +177,7 @@ def verify_focus(frame: np.ndarray, power_dpt: float, references: Sequence[tuple
                  roi: Roi | None = None, *, tolerance_dpt: float | None = None, z: float = 2.0,
                  noise_px2: float = 0.12, relative_noise: float = 0.06, shape_range: tuple[float, float] = (0.85, 1.5),
                  consistency_sigmas: float = 3.0, max_px2: float | None = None,
-                 texture_factor: float = 2.0) -> FocusCheck:
+                 texture_factor: float = 2.0, min_sharpness_ratio: float = 0.9) -> FocusCheck:
     r"""Check a frame taken at ``power_dpt`` against frames of the same scene at other powers.
 
     Each reference frame ``(image, P_k)`` gives ``D_k`` (:func:`relative_blur_px2`), which
@@ -194,6 +194,14 @@ def verify_focus(frame: np.ndarray, power_dpt: float, references: Sequence[tuple
     a periodic or band-limited texture whose frequencies a frame's blur has wiped out
     pins ``D_k`` down far less than a broadband one. All frames share one noise estimate
     (:func:`shared_noise_variance`).
+
+    A frame in focus is at least as sharp as any frame of the scene at another power,
+    whatever the texture and the PSF (a defocus PSF's MTF is below 1 at every frequency),
+    while the relative blur's Gaussian model can be misled (a periodic texture through a
+    disk PSF past its first MTF zero reverses its contrast). So a frame whose sharpness
+    (:func:`~tdfd.autofocus.sharpness.sharpness`, on the ROI) is below
+    ``min_sharpness_ratio`` times its sharpest reference's fails, its references counted as
+    not agreeing (its relative blurs mislead).
 
     The focus passes if ``|e| + z sigma_e <= tolerance_dpt`` and the references agree
     (their chi-square at the best ``alpha`` within ``consistency_sigmas`` per degree of
@@ -213,6 +221,8 @@ def verify_focus(frame: np.ndarray, power_dpt: float, references: Sequence[tuple
         consistency_sigmas: see above.
         max_px2: the relative-blur search range (px²; default
             :func:`relative_blur_search_px2` of ``camera``).
+        min_sharpness_ratio: see above (0 disables; 0.9 keeps every correct verification of
+            the reliability benchmark's tuning seeds, whose lowest ratio was 0.93).
         texture_factor: the weight of the texture-dependent uncertainty (the local Cramér-Rao
             bound leaves out the fit's other errors; 2 covers 99 % of the bench's Gaussian-optics
             measurements within 2.5 standard uncertainties).
@@ -263,6 +273,12 @@ def verify_focus(frame: np.ndarray, power_dpt: float, references: Sequence[tuple
         reason = f"the reference frames disagree (focus errors {', '.join(f'{x:+.3f}' for _, x, _ in est)} dpt)"
     elif abs(mean) + z * sigma > tol:
         reason = f"focus error {mean:+.3f} +- {sigma:.3f} dpt exceeds {tol:.3f} dpt"
+    elif min_sharpness_ratio > 0:
+        ratio = sharpness(frames[0][0], roi) / max(sharpness(im, roi) for im, _ in frames[1:])
+        if ratio < min_sharpness_ratio:
+            consistent = False
+            reason = (f"the frame is less sharp than a reference frame ({ratio:.2f}x, below {min_sharpness_ratio:g}x): "
+                      f"its relative blurs (focus error {mean:+.3f} dpt) mislead")
     return FocusCheck(reason is None, mean, sigma, consistent, est, reason)
 
 
