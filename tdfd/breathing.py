@@ -38,7 +38,7 @@ import numpy as np
 
 from .errors import InputError, NonFiniteError, RangeError, ShapeError
 
-__all__ = ["lanczos_matrix", "magnify", "register_to_power", "crop_offset", "check_magnification_per_dpt",
+__all__ = ["lanczos_matrix", "magnify", "register_to_power", "crop_offset", "breathing_window", "check_magnification_per_dpt",
            "breathing_scales", "registration_magnifications", "window_shifts", "LANCZOS_A",
            "MAX_MAGNIFICATION_PER_DPT"]
 
@@ -154,6 +154,30 @@ def window_shifts(centre_offset_px: float, magnifications: Sequence[float]) -> t
     """
     d = float(centre_offset_px)
     return tuple(-d * (1.0 - 1.0 / float(k)) for k in magnifications)  # type: ignore[return-value]
+
+
+def breathing_window(image_f1: np.ndarray, image_f2: np.ndarray, window: tuple[int, int, int, int],
+                     magnifications: Sequence[float], optical_centre: tuple[float, float] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The crops ``window = (y0, y1, x0, x1)`` of a pair, each frame moved by whole pixels by
+    its breathing translation at the window's position (:func:`window_shifts`, rounded;
+    :func:`crop_offset`), so that registering the crops about their own centre with the
+    per-frame ``magnifications`` equals registering the whole frames about
+    ``optical_centre`` (``(row, col)`` in the frames' pixels; default: their centre).
+
+    Raises:
+        NonFiniteError: a non-finite ``optical_centre``.
+        ShapeError: the window is empty or not inside the frames.
+    """
+    H, W = np.shape(image_f1)[-2:]
+    cy, cx = ((H - 1) / 2.0, (W - 1) / 2.0) if optical_centre is None else (float(v) for v in optical_centre)
+    if not (math.isfinite(cy) and math.isfinite(cx)):
+        raise NonFiniteError(f"optical_centre must be finite, got {optical_centre!r}")
+    y0, y1, x0, x1 = (int(v) for v in window)
+    sy = window_shifts((y0 + (y1 - y0 - 1) / 2.0) - cy, magnifications)
+    sx = window_shifts((x0 + (x1 - x0 - 1) / 2.0) - cx, magnifications)
+    return tuple(crop_offset(im, (y0, y1, x0, x1), (round(dy), round(dx)))  # type: ignore[return-value]
+                 for im, dy, dx in zip((image_f1, image_f2), sy, sx))
 
 
 def crop_offset(image: np.ndarray, window: tuple[int, int, int, int], shift: tuple[int, int] = (0, 0)) -> np.ndarray:

@@ -18,8 +18,8 @@ Focus breathing: a model exported for a camera that breathes (``tdfd.breathing``
 it is given, which must then be the optical centre. For a region of interest, pass the whole
 frames and ``window=(y0, y1, x0, x1)``: the runtime cuts the crop of each frame moved by the
 translation that magnification about the optical centre implies there
-(:func:`tdfd.breathing.window_shifts`, rounded to whole pixels as the graph moves whole
-pixels, :func:`tdfd.breathing.crop_offset`),
+(:func:`tdfd.breathing.breathing_window`: :func:`~tdfd.breathing.window_shifts`, rounded to
+whole pixels as the graph moves whole pixels),
 so the window's depths match those of the whole frame. ``optical_centre=(cy, cx)`` names the
 optical centre in the given frames' pixels when it is not their centre (a read-out window off
 the sensor's centre); default the frames' centre.
@@ -51,13 +51,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .breathing import crop_offset, registration_magnifications, window_shifts
+from .breathing import breathing_window, registration_magnifications
 from .camera import Camera, in_focus_power_dpt
 from .contract import (BREATHING_KEY, CAMERA_KEY, COVERAGE_KEY, DEFAULT_MODEL_ENV, DEFAULT_MODEL_RELPATH, GRID_KEY, INPUT_NAMES, METADATA_KEYS,
                        OUTPUT_NAMES, PACKAGED_MODEL_RELPATH, VERSION_KEY)
 from .camera_file import resolve_camera_file
 from .coverage import check_coverage
-from .errors import DTypeError, InputError, ModelError, NonFiniteError, ShapeError
+from .errors import DTypeError, InputError, ModelError, ShapeError
 from .frames import raw_to_linear
 from .pair_check import pair_problem
 
@@ -518,13 +518,8 @@ class DepthRuntime:
         if not (0 <= y0 < y1 <= H and 0 <= x0 < x1 <= W):
             raise ShapeError(f"window {tuple(window)} is empty or not inside the {H}x{W} frames")
         self.grid_shape(y1 - y0, x1 - x0)
-        cy, cx = ((H - 1) / 2.0, (W - 1) / 2.0) if optical_centre is None else (float(v) for v in optical_centre)
-        if not (math.isfinite(cy) and math.isfinite(cx)):
-            raise NonFiniteError(f"optical_centre must be finite, got {optical_centre!r}")
-        ks = registration_magnifications(self.frame_scales)
-        sy = window_shifts((y0 + (y1 - y0 - 1) / 2.0) - cy, ks)
-        sx = window_shifts((x0 + (x1 - x0 - 1) / 2.0) - cx, ks)
-        out = [crop_offset(im, (y0, y1, x0, x1), (round(dy), round(dx))) for im, dy, dx in zip((image_f1, image_f2), sy, sx)]
+        out = breathing_window(image_f1, image_f2, (y0, y1, x0, x1), registration_magnifications(self.frame_scales),
+                               optical_centre)
         return tuple(np.ascontiguousarray(o, dtype=np.float32) for o in out)  # type: ignore
 
     def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray, white_level: float | None = None,

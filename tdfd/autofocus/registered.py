@@ -32,8 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..breathing import breathing_scales, crop_offset, window_shifts
-from ..errors import NonFiniteError
+from ..breathing import breathing_scales, breathing_window
 from ..registration import register_breathing, registration_magnifications
 
 __all__ = ["BreathingRegistered"]
@@ -79,13 +78,8 @@ class BreathingRegistered:
         """
         im1, im2 = (np.asarray(x, dtype=np.float32) for x in (image_f1, image_f2))
         if optical_centre is not None:
-            cy, cx = (float(v) for v in optical_centre)
-            if not (np.isfinite(cy) and np.isfinite(cx)):
-                raise NonFiniteError(f"optical_centre must be finite, got {optical_centre!r}")
             H, W = im1.shape[-2:]
-            ks = registration_magnifications(self.scales)
-            sy, sx = window_shifts((H - 1) / 2.0 - cy, ks), window_shifts((W - 1) / 2.0 - cx, ks)
-            im1, im2 = (crop_offset(im, (0, H, 0, W), (round(dy), round(dx))) for im, dy, dx in zip((im1, im2), sy, sx))
+            im1, im2 = breathing_window(im1, im2, (0, H, 0, W), registration_magnifications(self.scales), optical_centre)
         a, b = (torch.as_tensor(np.ascontiguousarray(x, dtype=np.float32))[None, None] for x in (im1, im2))
         a, b = register_breathing(a, b, self.scales)
         return self.estimator(a[0, 0].numpy(), b[0, 0].numpy())

@@ -96,12 +96,10 @@ class RelativeBlur:
             heat equation) over the residual's pixels, the Cramér-Rao bound of the fit. It
             leaves out a mismatch of the PSF's shape (a pillbox fitted by a Gaussian), which
             :func:`~tdfd.autofocus.evidence.verify_focus` models with its shape factor.
-        at_limit: the fit ended at the edge of its search range (the texture gave no minimum inside).
     """
 
     px2: float
     sd_px2: float
-    at_limit: bool
 
 
 def relative_blur_px2(image_a: np.ndarray, image_b: np.ndarray, roi: Roi | None = None, *,
@@ -214,4 +212,4 @@ def relative_blur(image_a: np.ndarray, image_b: np.ndarray, roi: Roi | None = No
     j2 = 0.25 * (float(np.mean(lap.astype(np.float64) ** 2)) - n_src * _laplacian_energy(s))
     noise = n_src * _kernel_energy(s) + n_other
     sd = math.sqrt(noise / (lap.size * j2)) if j2 > 0 else math.inf
-    return RelativeBlur(est, sd, bool(abs(est) >= 0.95 * max_px2))
+    return RelativeBlur(est, sd)
