@@ -83,12 +83,18 @@ def calibration(tiles: dict[str, torch.Tensor], model: DepthModel, select: torch
     return decile_table(conf, apply_scale_remap(scale, remap) if remap is not None else scale, err)
 
 
+def structure_tiles(model: DepthModel, scenes: int, seed: int = STRUCTURE_SEED) -> dict[str, torch.Tensor]:
+    """The structure benchmark's first ``scenes`` scenes of every layout (480x640), per-tile
+    results concatenated (:func:`benchmarks.bench_structure.collect_structure`)."""
+    parts = [collect_structure(model, lay, scenes, (480, 640), seed=seed) for lay in STRUCTURE_LAYOUTS]
+    return {k: torch.cat([v[k] for v in parts]) for k in parts[0]}
+
+
 def fit_remap(model: DepthModel, planes: int, size: int, scenes: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The ad-hoc monotone remap of the predicted scale, fitted on planes and structure scenes
     of seeds :data:`REMAP_PLANE_SEED` / :data:`REMAP_STRUCTURE_SEED` (as many as evaluated)."""
     fit_planes = plane_tiles(model, planes, size, seed=REMAP_PLANE_SEED)
-    parts = [collect_structure(model, lay, scenes, (480, 640), seed=REMAP_STRUCTURE_SEED) for lay in STRUCTURE_LAYOUTS]
-    fit_structure = {k: torch.cat([v[k] for v in parts]) for k in parts[0]}
+    fit_structure = structure_tiles(model, scenes, seed=REMAP_STRUCTURE_SEED)
     conf, err = (torch.cat(x) for x in zip(_in_range(fit_planes, model), _in_range(fit_structure, model)))
     return fit_scale_remap(predicted_scale(conf, model.confidence_scale).clamp_min(1e-12), err)
 
@@ -112,8 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     model = load_depth_model(args.model)
     t0 = time.perf_counter()
     planes = plane_tiles(model, args.planes, args.size)
-    parts = [collect_structure(model, lay, args.scenes, (480, 640)) for lay in STRUCTURE_LAYOUTS]
-    structure = {k: torch.cat([v[k] for v in parts]) for k in parts[0]}
+    structure = structure_tiles(model, args.scenes)
     remap = fit_remap(model, args.planes, args.size, args.scenes)
     wall = time.perf_counter() - t0
     sets = {"textured planes": (planes, None), "structure scenes, all tiles": (structure, None),

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from tdfd.errors import InputError
@@ -144,17 +145,10 @@ def fit_scale_remap(scale: torch.Tensor, error: torch.Tensor, bins: int = 20) ->
 def apply_scale_remap(scale: torch.Tensor, remap: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
     """``b'`` of :func:`fit_scale_remap`'s knots: piecewise linear in ``log b``, the end knots'
     factors held beyond them."""
-    kb, kr = remap
+    kb, kr = (torch.as_tensor(k, dtype=torch.float64).numpy() for k in remap)
     lb = torch.as_tensor(scale, dtype=torch.float64).log()
-    x = lb.clamp(float(kb[0]), float(kb[-1]))
-    idx = torch.searchsorted(kb, x).clamp(1, kb.numel() - 1) if kb.numel() > 1 else torch.zeros_like(x, dtype=torch.long)
-    if kb.numel() == 1:
-        shift = (kr[0] - kb[0]).expand_as(lb)
-    else:
-        x0, x1, y0, y1 = kb[idx - 1], kb[idx], kr[idx - 1] - kb[idx - 1], kr[idx] - kb[idx]
-        w = ((x - x0) / (x1 - x0).clamp_min(1e-12)).clamp(0, 1)
-        shift = y0 + w * (y1 - y0)
-    return (lb + shift).exp()
+    shift = np.interp(lb.numpy(), kb, kr - kb)  # the end knots' shifts held beyond them
+    return (lb + torch.from_numpy(shift)).exp()
 
 
 def plot_calibration(tables: dict[str, list[dict]], path: Path, title: str = "") -> None:

@@ -35,8 +35,9 @@ One single-shot DFD focus (paper sec. 3, "focal length as the varying parameter"
    measured focus error: when it and the model's estimate agree, their weighted mean
    (:func:`~tdfd.autofocus.evidence.combine_focus_error`, the three-frame estimate), or,
    when the model is too uncertain to take part, the frame's measured error alone,
-   provided its three relative blurs agree among themselves, is known well enough, the lens moves there and focus is declared (evidence ``"refined"``, still 3
-   frames); otherwise the lens moves by the measured error and
+   provided its three relative blurs agree among themselves, is known well enough, the
+   lens moves there and focus is declared (evidence ``"refined"``, still 3 frames);
+   otherwise the lens moves by the measured error and
    verifies again (``refine_steps``), then a contrast-detect search around ``P_e`` takes
    over (or, with ``fallback=False``, the run ends ``"unconfirmed"``); a search without a
    peak (``contrast_min_peak``) declares nothing.
