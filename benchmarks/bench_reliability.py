@@ -98,7 +98,7 @@ def _cause_rows(recs: list) -> list[list[str]]:
             continue
         judged = [r for r in group if r.dfd_blur_px is not None]
         right = f"{sum(1 for r in judged if r.dfd_blur_px < 1.0)} of {len(judged)}" if judged else "- (no estimate used)"
-        fams = sorted({r.scene for r in group}, key=lambda f: -sum(1 for r in group if r.scene == f))
+        fams = sorted({r.scene for r in group}, key=lambda f: (-sum(1 for r in group if r.scene == f), f))
         fam = ", ".join(f"{f} {sum(1 for r in group if r.scene == f)}" for f in fams)
         psf = ", ".join(f"{p} {sum(1 for r in group if r.psf == p)}" for p in PSFS)
         rows.append([name, str(len(group)), right, fam, psf])

@@ -21,8 +21,8 @@ Focus is declared only on the controller's own evidence (:mod:`tdfd.autofocus.ev
 The mixin reads the controller's thresholds (``max_uncertainty_px``, ``agree_px``,
 ``verify_tolerance_px``, ``verify_z``, ``shape_range``, ``combine_gate``, ``refine_z``,
 ``refine_max_uncertainty_px``, ``refine_steps``, ``verify``, ``fallback``) and uses the
-state machine's ``_capture`` / ``_set_power`` and the controller's ``_contrast``,
-``_roi_for`` and ``_verify_light``.
+state machine's ``_capture`` / ``_set_power`` and the controller's ``_contrast`` and
+``_verify_light``.
 """
 
 from __future__ import annotations
@@ -79,12 +79,11 @@ class FocusDeclaration:
                       "verification frame allowed")
             return (yield from self._not_confirmed(reason, power, (f1, f2)))
         references = [(f1.image, f1.power_dpt), (f2.image, f2.power_dpt)]
-        roi_v = self._roi_for(f1.image.shape[-2:])
         tol = self.verify_tolerance_px / blur_px_per_dpt(self.camera)
         for step in range(self.refine_steps + 1):
             self.state = State.VERIFY
             fv, _ = yield from self._capture("verify", light=self._verify_light())
-            check = verify_focus(fv.image, fv.power_dpt, references, self.camera, roi_v,
+            check = verify_focus(fv.image, fv.power_dpt, references, self.camera, roi,
                                  tolerance_dpt=tol, z=self.verify_z, shape_range=self.shape_range)
             res.verify_error_dpt = check.error_dpt
             res.blur_measurements += len(check.estimates)
