@@ -262,9 +262,13 @@ the lens moves there and focus is declared without a further frame ("3-frame est
 information: a periodic or band-limited texture that a frame's blur has wiped out measures
 little) and all frames of a run share one noise estimate (the blurriest frame's, which a
 sharp periodic texture does not inflate). Otherwise the lens moves by the measured error and verifies
-once more; after that a contrast search around the estimate (+-0.6 dpt) decides, and a search
-whose peak rises less than 1.1x above its least sharp frame (sensor noise on a texture-less
-target) declares nothing ("not declared"). Thresholds tuned on bench seeds 10-21, never on the
+once more (not to a power that focuses no target of the 0.3-1.0 m range); after that a contrast
+search around the estimate (+-0.6 dpt) decides, scanning on outwards where its sharpest frame
+lies at an edge of that span, and a search whose peak rises less than 1.1x above its least sharp
+frame (sensor noise on a texture-less target) declares nothing ("not declared"). Neither a
+verification nor a 3-frame estimate is declared at a power that the frames' sharpness order
+rules out (a frame clearly sharper than another puts focus on its side of their midpoint,
+whatever the PSF; `tdfd.autofocus.sharpness_order`). Thresholds tuned on bench seeds 10-21, never on the
 seeds 0-4 of this benchmark. "Declared out of focus": focus declared with a residual blur
 radius of 1 px or more. "Correct DFD estimate withheld": the first DFD estimate was within
 1 px, but focus was not declared on it at once (a 3-frame estimate moves the lens away from

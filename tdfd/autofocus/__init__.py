@@ -18,7 +18,9 @@ Layers, bottom to top; a module imports only from its own layer or the ones belo
      :mod:`~tdfd.autofocus.evidence` (what a declared focus rests on: the estimate's
      uncertainty, the DFD pair's own relative blur, a verification frame), measured with
      :mod:`~tdfd.autofocus.relative_blur` (two frames' relative blur, no model; its search
-     range scaled to the camera's blur).
+     range scaled to the camera's blur) and bounded by
+     :mod:`~tdfd.autofocus.sharpness_order` (the in-focus powers that the frames' sharpness
+     order allows, whatever the PSF).
 
 2. Policies
 

@@ -15,6 +15,9 @@ Two strategies:
   ``stop_ratio`` of the best on two frames after it. The peak is refined by fitting a
   parabola to ``log(sharpness)`` through the best point and its neighbours; optionally
   (``fine=True``) one more frame at the refined power confirms it (kept only if sharper).
+  A sharpest frame at an edge of the span is no peak (the sharpness may rise beyond it):
+  the scan then goes on outwards, one step at a time, up to ``range_dpt`` (default: the
+  camera's working range), until the peak is passed or the range ends (``extend=True``).
 * ``"golden"``: golden-section search on ``[lo, hi]`` down to ``tol_dpt``; every
   evaluation waits for the previous frame (no pipelining).
 """
@@ -29,8 +32,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError
-from ..camera import in_focus_power_dpt
-from .evidence import blur_px_per_dpt
+from .evidence import blur_px_per_dpt, working_powers_dpt
 from .machine import StateMachine
 from .messages import AFResult, Command, Observation, State
 from .roi import Roi
@@ -99,12 +101,18 @@ class ContrastSearch:
             around its peak, one step wide, in steps of ``fine_scan_px / 2`` px of blur, and
             takes that scan's peak. 0 disables; the reference camera (1.1 px per step) never
             takes it.
+        extend: scan on beyond an edge of ``span_dpt`` where the sharpest frame lies at it
+            (scan strategy; a local search around a DFD estimate that missed by more than
+            its span would otherwise declare the edge: on the reliability benchmark all
+            three contrast declarations out of focus were such edges).
+        range_dpt: ``(lo, hi)`` the furthest an extended scan goes (dpt); default: the
+            in-focus powers of the camera's depth range widened by ``margin_dpt``.
     """
 
     def __init__(self, camera: Camera, roi: Roi | None = None, strategy: str = "scan", measure: str = "laplacian",
                  span_dpt: tuple[float, float] | None = None, margin_dpt: float = 0.15, step_dpt: float = 0.4,
                  stop_ratio: float = 0.6, fine: bool = False, tol_dpt: float = 0.15, light: str | None = None,
-                 fine_scan_px: float = 2.0) -> None:
+                 fine_scan_px: float = 2.0, extend: bool = True, range_dpt: tuple[float, float] | None = None) -> None:
         if strategy not in ("scan", "golden"):
             raise InputError(f"contrast strategy must be 'scan' or 'golden', got {strategy!r}")
         if measure not in MEASURES:
@@ -112,23 +120,27 @@ class ContrastSearch:
         if step_dpt <= 0 or tol_dpt <= 0:
             raise InputError("step_dpt and tol_dpt must be > 0")
         self.camera, self.roi, self.strategy, self.measure = camera, roi, strategy, measure
-        if span_dpt is None:
-            near, far = camera.depth_range_m
-            span_dpt = (in_focus_power_dpt(camera, far) - margin_dpt, in_focus_power_dpt(camera, near) + margin_dpt)
-        lo, hi = sorted(float(v) for v in span_dpt)
+        working = working_powers_dpt(camera, margin_dpt)
+        lo, hi = sorted(float(v) for v in (working if span_dpt is None else span_dpt))
         self.span_dpt = (lo, hi)
+        r_lo, r_hi = sorted(float(v) for v in (working if range_dpt is None else range_dpt))
+        if not all(math.isfinite(v) for v in (lo, hi, r_lo, r_hi)):
+            raise InputError(f"contrast search span {span_dpt} and range {range_dpt} must be finite")
+        self.range_dpt = (min(r_lo, lo), max(r_hi, hi))
+        self.extend = bool(extend)
         self.step_dpt, self.stop_ratio, self.fine, self.tol_dpt = float(step_dpt), float(stop_ratio), bool(fine), float(tol_dpt)
         self.light, self.fine_scan_px = light, float(fine_scan_px)
         if self.fine_scan_px < 0:
             raise InputError(f"fine_scan_px must be >= 0, got {fine_scan_px}")
         self.samples: list[tuple[float, float]] = []  # (power_dpt, sharpness) in capture order
 
-    def _span(self, machine: StateMachine) -> tuple[float, float]:
-        lo, hi = self.span_dpt
+    def _span(self, machine: StateMachine, span: tuple[float, float] | None = None) -> tuple[float, float]:
+        """``span`` (default ``span_dpt``) within the lens's power limits."""
+        lo, hi = span or self.span_dpt
         if machine.power_limits_dpt is not None:
             lo, hi = max(lo, machine.power_limits_dpt[0]), min(hi, machine.power_limits_dpt[1])
             if lo > hi:
-                raise InputError(f"the contrast search span {self.span_dpt} lies outside the lens range {machine.power_limits_dpt}")
+                raise InputError(f"the contrast search span {(lo, hi)} lies outside the lens range {machine.power_limits_dpt}")
         return lo, hi
 
     def _measure(self, frame) -> float:
@@ -157,8 +169,11 @@ class ContrastSearch:
         if here is not None and abs(here - hi) < abs(here - lo):
             powers.reverse()
         values = yield from self._sweep(machine, powers, stop_early=True)
+        powers = [float(p) for p in powers[: len(values)]]
+        if self.extend:
+            yield from self._extend(machine, powers, values)
         best = int(np.argmax(values))
-        p_best = _refine_peak([float(p) for p in powers[: len(values)]], values, best, self.step_dpt)
+        p_best = _refine_peak(powers, values, best, self.step_dpt)
         if self.fine and abs(p_best - float(powers[best])) > 1e-6:
             yield from machine._set_power(p_best)
             frame, _ = yield from machine._capture("contrast", light=self.light)
@@ -170,28 +185,52 @@ class ContrastSearch:
         log.info("contrast scan: peak at %.3f dpt after %d frames", p_best, len(self.samples))
         return p_best
 
-    def _sweep(self, machine: StateMachine, powers: Sequence[float], stop_early: bool
+    def _sweep(self, machine: StateMachine, powers: Sequence[float], stop_early: bool, before: float | None = None
                ) -> Generator[Command, Observation, list[float]]:
         """One frame at each of ``powers`` in order (each move commanded at the previous
         exposure's end) and its sharpness; with ``stop_early`` the sweep ends once two frames
-        after the best have fallen below ``stop_ratio`` of it (the peak is passed)."""
+        after the best have fallen below ``stop_ratio`` of it (the peak is passed). ``before``:
+        the sharpness of the frame just before ``powers[0]`` (a sweep that continues a scan)."""
         yield from machine._set_power(float(powers[0]))
-        values: list[float] = []
+        seen = [] if before is None else [float(before)]
         for i in range(len(powers)):
             nxt = float(powers[i + 1]) if i + 1 < len(powers) else None
             frame, _ = yield from machine._capture("contrast", then_power_dpt=nxt, light=self.light)
-            values.append(self._measure(frame))
-            best = int(np.argmax(values))
-            if stop_early and i - best >= 2 and values[-1] < self.stop_ratio * values[best] and values[-2] < values[best]:
+            seen.append(self._measure(frame))
+            best = int(np.argmax(seen))
+            if (stop_early and len(seen) - 1 - best >= 2 and seen[-1] < self.stop_ratio * seen[best]
+                    and seen[-2] < seen[best]):
                 log.debug("contrast scan: stopping after %d frames (peak passed)", i + 1)
                 break
-        return values
+        return seen if before is None else seen[1:]
+
+    def _extend(self, machine: StateMachine, powers: list[float], values: list[float]
+                ) -> Generator[Command, Observation, None]:
+        """While the sharpest frame lies at an edge of the scanned powers and ``range_dpt``
+        goes on beyond it, scan on outwards from that edge (``powers`` and ``values`` grow)."""
+        r_lo, r_hi = self._span(machine, self.range_dpt)
+        while True:
+            best = int(np.argmax(values))
+            top, bottom = max(powers), min(powers)
+            if powers[best] >= top and top < r_hi - 1e-6:
+                n = int(math.ceil((r_hi - top) / self.step_dpt - 1e-9))
+                outward = [min(r_hi, top + self.step_dpt * k) for k in range(1, n + 1)]
+            elif powers[best] <= bottom and bottom > r_lo + 1e-6:
+                n = int(math.ceil((bottom - r_lo) / self.step_dpt - 1e-9))
+                outward = [max(r_lo, bottom - self.step_dpt * k) for k in range(1, n + 1)]
+            else:
+                return
+            log.info("contrast scan: the sharpest frame (%.3f dpt) is at the edge of the scanned %.3f..%.3f dpt: "
+                     "scanning on outwards", powers[best], bottom, top)
+            more = yield from self._sweep(machine, outward, stop_early=True, before=values[best])
+            powers += outward[: len(more)]
+            values += more
 
     def _fine_scan(self, machine: StateMachine, centre: float, px_per_dpt: float) -> Generator[Command, Observation, float]:
         """A second scan one coarse step wide around ``centre``, in steps of half
         ``fine_scan_px`` of blur: the coarse peak of a shallow depth of field is off by up to
         half a step (several px of blur)."""
-        lo, hi = self._span(machine)
+        lo, hi = self._span(machine, self.range_dpt if self.extend else None)
         a, b = max(lo, centre - 0.5 * self.step_dpt), min(hi, centre + 0.5 * self.step_dpt)
         step = 0.5 * self.fine_scan_px / px_per_dpt
         n = max(3, int(math.ceil((b - a) / step - 1e-9)) + 1)

@@ -29,12 +29,14 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 from typing import Generator
 
 from ..errors import InputError
 from .evidence import (FocusEstimate, FocusUncertainty, blur_px_per_dpt, combine_focus_error, pair_focus_interval,
-                       verify_focus)
+                       verify_focus, working_powers_dpt)
 from .messages import Command, Frame, Observation, State
+from .sharpness_order import sharpness_bracket
 from .roi import Roi
 
 __all__ = ["FocusDeclaration"]
@@ -90,6 +92,12 @@ class FocusDeclaration:
             log.info("verify %d at %.3f dpt: focus error %+.3f +- %.3f dpt: %s", step + 1, power, check.error_dpt,
                      check.sigma_dpt, "ok" if check.passed else check.reason)
             if check.passed:
+                lo_s, hi_s = sharpness_bracket([(fv.image, fv.power_dpt)] + references, roi)
+                if not lo_s - tol <= power <= hi_s + tol:
+                    check = replace(check, passed=False, consistent=False,
+                                    reason=f"the frames' sharpness order puts focus at {lo_s:.3f}..{hi_s:.3f} dpt")
+                    log.info("verify %d: %s", step + 1, check.reason)
+            if check.passed:
                 res.verified = True
                 self._declare(fv.t_ready_s, "verification")
                 return f1, f2
@@ -106,7 +114,15 @@ class FocusDeclaration:
                         and math.isfinite(check.error_dpt)):
                     est = FocusEstimate(check.error_dpt, check.sigma_dpt, math.nan)
                 goal = None if est is None else power - est.error_dpt
-                lo_p, hi_p = self.power_limits_dpt or (-math.inf, math.inf)
+                if goal is not None:
+                    lo_s, hi_s = sharpness_bracket(references, roi)
+                    if not lo_s <= goal <= hi_s:
+                        log.info("three-frame estimate %.3f dpt: the frames' sharpness order puts focus at %.3f..%.3f dpt",
+                                 goal, lo_s, hi_s)
+                        est = goal = None
+                lo_p, hi_p = working_powers_dpt(self.camera)  # the goal must focus a target of the range
+                if self.power_limits_dpt is not None:
+                    lo_p, hi_p = max(lo_p, self.power_limits_dpt[0]), min(hi_p, self.power_limits_dpt[1])
                 if est is not None and goal is not None and self.refine_z * est.sigma_dpt <= tol and lo_p <= goal <= hi_p:
                     log.info("three-frame estimate: focus error %+.3f +- %.3f dpt (%s): declared at %.3f dpt",
                              est.error_dpt, est.sigma_dpt, "the verification frame's alone" if math.isnan(est.discrepancy)
@@ -123,6 +139,13 @@ class FocusDeclaration:
                     self._declare(t_declare, "refined")
                     return f1, f2
             if step == self.refine_steps or not (check.consistent and math.isfinite(check.error_dpt)):
+                break
+            lo_w, hi_w = working_powers_dpt(self.camera)
+            if not lo_w <= power - check.error_dpt <= hi_w:
+                # a power that focuses no target of the camera's range: the measurement is wrong (a periodic
+                # texture through a disk PSF past its first MTF zero), not the lens
+                check = replace(check, reason=f"{check.reason}; the step to {power - check.error_dpt:.3f} dpt leaves "
+                                              f"the working powers {lo_w:.3f}..{hi_w:.3f} dpt")
                 break
             power = self.check_power(power - check.error_dpt)  # a further DFD step with the verification frame
             res.refine_count += 1

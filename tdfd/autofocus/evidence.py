@@ -31,7 +31,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..camera import Camera
+from ..camera import Camera, in_focus_power_dpt
 from ..errors import InputError
 from .aggregate import DepthAggregate
 from .relative_blur import relative_blur, relative_blur_px2, relative_blur_search_px2
@@ -41,6 +41,7 @@ from .sharpness import noise_variance, sharpness
 __all__ = [
     "blur_px_per_dpt",
     "sigma_px_per_dpt",
+    "working_powers_dpt",
     "relative_error_scale",
     "FocusUncertainty",
     "estimate_uncertainty",
@@ -58,6 +59,20 @@ __all__ = [
 def blur_px_per_dpt(camera: Camera) -> float:
     """Geometric blur radius (px) per dioptre of focus error: ``(A/2) d_s / pixel pitch`` (paper eq. 3)."""
     return camera.blur_scale_m_dpt / camera.pixel_pitch_m
+
+
+def working_powers_dpt(camera: Camera, margin_dpt: float = 0.15) -> tuple[float, float]:
+    """``(lo, hi)``: the ECVFL powers that focus the camera's depth range (far, near), each
+    widened by ``margin_dpt``. A power outside focuses no target the camera is made for.
+
+    Example:
+        >>> from tdfd import Camera
+        >>> lo, hi = working_powers_dpt(Camera.preset("reference"))
+        >>> lo < hi
+        True
+    """
+    near, far = camera.depth_range_m
+    return in_focus_power_dpt(camera, far) - margin_dpt, in_focus_power_dpt(camera, near) + margin_dpt
 
 
 def sigma_px_per_dpt(camera: Camera) -> float:

@@ -1,0 +1,131 @@
+"""Safeguards against declaring a wrong focus that no blur model can make (issue 20): the
+sharpness order of a run's frames, a contrast peak that must be bracketed, and lens steps
+that must stay within the powers that focus the camera's depth range."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tdfd.autofocus import declaration
+from tdfd.autofocus.contrast import ContrastController
+from tdfd.autofocus.dfd import DFDController
+from tdfd.autofocus.evidence import FocusCheck, working_powers_dpt
+from tdfd.autofocus.machine import drive
+from tdfd.autofocus.sharpness_order import sharpness_bracket
+from tdfd.errors import InputError
+from tests.test_autofocus_controller import CAM, TRUE_DEPTH, FakePlant, _blur_px
+
+
+def _box(x: np.ndarray, k: int) -> np.ndarray:
+    return sum(np.roll(x, (i, j), (0, 1)) for i in range(k) for j in range(k)) / k**2
+
+
+SCENE = np.random.default_rng(3).random((96, 96))
+
+
+def test_the_sharper_frame_holds_focus_on_its_side_of_the_midpoint():
+    lo, hi = sharpness_bracket([(_box(SCENE, 1), 2.0), (_box(SCENE, 4), 3.0)])
+    assert (lo, hi) == (-math.inf, 2.5)
+    lo, hi = sharpness_bracket([(_box(SCENE, 4), 2.0), (_box(SCENE, 1), 3.0)])
+    assert (lo, hi) == (2.5, math.inf)
+    # three frames: the sharpest in the middle brackets focus on both sides
+    lo, hi = sharpness_bracket([(_box(SCENE, 5), 1.0), (_box(SCENE, 1), 2.0), (_box(SCENE, 3), 2.6)])
+    assert (lo, hi) == pytest.approx((1.8, 2.3))  # 2.6 is sharper than 1.0 too
+
+
+def test_frames_that_do_not_compare_leave_focus_open():
+    same = [(SCENE, 2.0), (SCENE * 1.0, 3.0)]  # equally sharp: within the margin
+    assert sharpness_bracket(same) == (-math.inf, math.inf)
+    close = [(_box(SCENE, 1), 2.0), (_box(SCENE, 4), 2.01)]  # closer in power than 0.02 dpt
+    assert sharpness_bracket(close) == (-math.inf, math.inf)
+    assert sharpness_bracket(close, min_separation_dpt=0.005)[1] == pytest.approx(2.005)
+
+
+def test_a_contradictory_order_allows_no_power():
+    """The middle frame less sharp than both outer ones (contrast reversal): no power satisfies all."""
+    lo, hi = sharpness_bracket([(_box(SCENE, 2), 1.0), (_box(SCENE, 5), 2.0), (_box(SCENE, 2), 3.0)])
+    assert lo > hi
+
+
+def test_sharpness_bracket_rejects_bad_input():
+    with pytest.raises(InputError, match="finite"):
+        sharpness_bracket([(SCENE, math.nan), (SCENE, 1.0)])
+    with pytest.raises(InputError, match="margin"):
+        sharpness_bracket([(SCENE, 1.0)], margin=-0.1)
+
+
+def test_working_powers_span_the_depth_range():
+    lo, hi = working_powers_dpt(CAM, margin_dpt=0.0)
+    near, far = CAM.depth_range_m
+    assert lo == pytest.approx(CAM.in_focus_power_dpt(far)) and hi == pytest.approx(CAM.in_focus_power_dpt(near))
+    assert working_powers_dpt(CAM) == pytest.approx((lo - 0.15, hi + 0.15))
+
+
+def test_a_contrast_peak_at_the_edge_of_its_span_is_scanned_past():
+    """A search around a power 0.9 dpt from focus (span +-0.6 dpt): its sharpest frame is at the
+    span's edge, so the scan goes on outwards and finds the peak; without the extension it
+    declares the edge, well out of focus."""
+    true_power = CAM.in_focus_power_dpt(TRUE_DEPTH)
+    span = (true_power + 0.3, true_power + 1.5)
+    res = drive(ContrastController(CAM, span_dpt=span), FakePlant(TRUE_DEPTH))
+    assert res.status == "focused" and _blur_px(TRUE_DEPTH, res.power_dpt) < 0.5
+    edge = drive(ContrastController(CAM, span_dpt=span, extend=False), FakePlant(TRUE_DEPTH))
+    assert edge.power_dpt == pytest.approx(span[0]) and _blur_px(TRUE_DEPTH, edge.power_dpt) > 0.7
+    assert res.frames > edge.frames
+
+
+def test_a_bracketed_peak_is_not_extended():
+    true_power = CAM.in_focus_power_dpt(TRUE_DEPTH)
+    span = (true_power - 0.6, true_power + 0.6)
+    res = drive(ContrastController(CAM, span_dpt=span), FakePlant(TRUE_DEPTH))
+    plain = drive(ContrastController(CAM, span_dpt=span, extend=False), FakePlant(TRUE_DEPTH))
+    assert res.frames == plain.frames and res.power_dpt == pytest.approx(plain.power_dpt)
+
+
+def test_a_step_outside_the_working_powers_is_not_taken():
+    """A target nearer than the camera's range: the verification frame's error points to a power
+    that focuses no target of the range, so no further step goes there (and nothing is declared)."""
+    near = 0.26
+    assert CAM.in_focus_power_dpt(near) > working_powers_dpt(CAM)[1]
+    res = drive(DFDController(CAM, fallback=False), FakePlant(near, scripted=(0.32, 0.05)))
+    assert res.status == "unconfirmed" and res.refine_count == 0
+    assert "leaves the working powers" in res.fallback_reason
+    assert res.power_dpt <= working_powers_dpt(CAM)[1]
+
+
+def _misled(error_dpt: float, passed: bool):
+    """A stand-in for the relative blur misled by a disk PSF on a periodic texture: it reports
+    ``error_dpt`` with a tight uncertainty, consistent references, whatever the frames show."""
+    def verify_focus(frame, power_dpt, references, camera, roi=None, **kw):
+        est = tuple((p, error_dpt, 0.01) for _, p in references) + ((power_dpt, error_dpt, 0.01),)
+        return FocusCheck(passed, error_dpt, 0.01, True, est, None if passed else f"focus error {error_dpt:+.3f}")
+    return verify_focus
+
+
+def test_a_verification_the_sharpness_order_contradicts_does_not_pass(monkeypatch):
+    """The estimate is 0.6 dpt off and a misled verification 'passes' it: the verification
+    frame is visibly less sharp than the DFD pair's frame nearer focus, so focus is not declared."""
+    wrong = 1.0 / (1.0 / TRUE_DEPTH - 0.6)
+    monkeypatch.setattr(declaration, "verify_focus", _misled(0.0, passed=True))
+    res = drive(DFDController(CAM, fallback=False, refine_steps=0), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
+    assert _blur_px(TRUE_DEPTH, CAM.in_focus_power_dpt(wrong)) > 1.5
+    assert res.status == "unconfirmed" and res.verified is False
+    assert "sharpness order" in res.fallback_reason
+
+
+def test_a_three_frame_estimate_the_sharpness_order_contradicts_is_not_declared(monkeypatch):
+    """A misled verification puts focus a further 0.3 dpt away from the truth: the three-frame
+    estimate would declare there; the frames' sharpness order rules that power out."""
+    wrong = 1.0 / (1.0 / TRUE_DEPTH - 0.6)
+    monkeypatch.setattr(declaration, "verify_focus", _misled(+0.3, passed=False))
+    res = drive(DFDController(CAM, fallback=False, refine_steps=0, refine_max_uncertainty_px=0.0),
+                FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
+    assert res.evidence != "refined" and res.status == "unconfirmed"
+    # the same run with the order check's frames all equally sharp would declare: the check is what stops it
+    monkeypatch.setattr(declaration, "sharpness_bracket", lambda frames, roi=None: (-math.inf, math.inf))
+    res = drive(DFDController(CAM, fallback=False, refine_steps=0, refine_max_uncertainty_px=0.0),
+                FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
+    assert res.evidence == "refined" and _blur_px(TRUE_DEPTH, res.power_dpt) > 1.5
