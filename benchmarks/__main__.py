@@ -20,6 +20,7 @@ BENCHMARKS = {
     "synthesis": "benchmarks.bench_synthesis",
     "refinement": "benchmarks.bench_refinement",
     "bound": "benchmarks.bench_bound",
+    "family_ablation": "benchmarks.bench_family_ablation",
     "structure": "benchmarks.bench_structure",
     "uncertainty": "benchmarks.bench_uncertainty",
     "onnx": "benchmarks.bench_onnx",

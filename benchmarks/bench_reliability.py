@@ -264,7 +264,9 @@ little) and all frames of a run share one noise estimate (the blurriest frame's,
 sharp periodic texture does not inflate). Otherwise the lens moves by the measured error and verifies
 once more (not to a power that focuses no target of the 0.3-1.0 m range); after that a contrast
 search around the estimate (+-0.6 dpt) decides, scanning on outwards where its sharpest frame
-lies at an edge of that span, and a search whose peak rises less than 1.1x above its least sharp
+lies at an edge of that span. Where the model has no opinion (confidence too low) on a textured
+ROI, the lens first goes to the DFD pair's own model-free in-focus power and verification frames
+decide as above, the model taking no part. A contrast search whose peak rises less than 1.1x above its least sharp
 frame (sensor noise on a texture-less target) declares nothing ("not declared"). Neither a
 verification nor a 3-frame estimate is declared at a power that the frames' sharpness order
 rules out (a frame clearly sharper than another puts focus on its side of their midpoint,

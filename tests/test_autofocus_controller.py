@@ -193,7 +193,7 @@ def test_estimate_fault_fails():
 
 
 def test_low_confidence_falls_back_to_contrast():
-    ctrl = DFDController(CAM, min_confidence=0.2)
+    ctrl = DFDController(CAM, min_confidence=0.2, pair_fallback=False)
     run_to_estimate(ctrl)
     cmd = ctrl.step(grid(0.5, conf=0.01))
     assert ctrl.state is State.CONTRAST and isinstance(cmd, SetPower)

@@ -129,3 +129,23 @@ def test_a_three_frame_estimate_the_sharpness_order_contradicts_is_not_declared(
     res = drive(DFDController(CAM, fallback=False, refine_steps=0, refine_max_uncertainty_px=0.0),
                 FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
     assert res.evidence == "refined" and _blur_px(TRUE_DEPTH, res.power_dpt) > 1.5
+
+
+@pytest.mark.parametrize("depth", [0.33, 0.45, 0.8])
+def test_no_model_opinion_on_a_textured_roi_uses_the_pairs_own_relative_blur(depth):
+    """The model answers confidence 0.001 (below min_confidence) on a textured ROI: the lens
+    goes to the in-focus power of the pair's own relative blur and verification frames decide
+    (method dfd), with no contrast search and within 4 frames."""
+    res = drive(DFDController(CAM), FakePlant(depth, scripted=(0.6, 0.001)))
+    assert res.status == "focused" and res.method == "dfd" and res.evidence in ("verification", "refined")
+    assert res.frames <= 4 and res.verified is not None
+    assert "confidence" in (res.fallback_reason or "")
+    assert _blur_px(depth, res.power_dpt) < 0.8
+
+
+def test_without_the_pair_fallback_or_a_verification_the_contrast_search_decides():
+    """``pair_fallback=False``, or ``verify='never'`` (no evidence for a model-free estimate):
+    the contrast search, as before."""
+    for ctrl in (DFDController(CAM, pair_fallback=False), DFDController(CAM, verify="never")):
+        res = drive(ctrl, FakePlant(0.45, scripted=(0.6, 0.001)))
+        assert res.method == "contrast" and res.frames > 4

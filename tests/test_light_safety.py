@@ -42,9 +42,9 @@ class _Estimator:
         return d, (np.zeros_like(c) if self.no_confidence else c)
 
 
-def _bench(estimator, light, **kw):
-    return SimBench(estimator=estimator, light=light, controller={"illumination": "coherent"}, compute_s=0.001,
-                    readout_hw=HW, **kw)
+def _bench(estimator, light, controller=None, **kw):
+    return SimBench(estimator=estimator, light=light, controller={"illumination": "coherent", **(controller or {})},
+                    compute_s=0.001, readout_hw=HW, **kw)
 
 
 def _watch_lens(bench, light):
@@ -140,11 +140,13 @@ def test_bench_light_off_after_keyboard_interrupt_in_every_state(analytic):
     with _bench(analytic, light) as bench:
         states = _interrupt_sweep(bench, light, "step")
         states |= _interrupt_sweep(bench, light, "exposure")
-    # an estimate nobody trusts: the lit retry, then the contrast search
-    light2 = SimulatedLight(CAM)
-    with _bench(_Estimator(analytic, no_confidence=True), light2) as bench:
-        states |= _interrupt_sweep(bench, light2, "step")
-    assert {State.MOVE_F1, State.CAPTURE_F1, State.CAPTURE_F2, State.ESTIMATE, State.MOVE_FOCUS,
+    # an estimate nobody trusts: the lit retry, then the pair's own estimate and its verification
+    # frames, or (without the pair fall-back) the contrast search
+    for options in ({}, {"pair_fallback": False}):
+        light2 = SimulatedLight(CAM)
+        with _bench(_Estimator(analytic, no_confidence=True), light2, options) as bench:
+            states |= _interrupt_sweep(bench, light2, "step")
+    assert {State.MOVE_F1, State.CAPTURE_F1, State.CAPTURE_F2, State.ESTIMATE, State.MOVE_FOCUS, State.VERIFY,
             State.CONTRAST} <= states
 
 

@@ -155,6 +155,38 @@ class FocusDeclaration:
             res.history.append((ack.ready_s, power, None))
         return (yield from self._not_confirmed(f"verification failed: {check.reason}", power, (f1, f2)))
 
+    def _pair_estimate(self, f1: Frame, f2: Frame, roi: Roi, reason: str
+                       ) -> Generator[Command, Observation, tuple[Frame, Frame] | None | bool]:
+        """The model has no opinion on a textured ROI (``reason``): the lens moves to the
+        in-focus power the DFD pair's own relative blur gives (the centre of
+        :func:`~tdfd.autofocus.evidence.pair_focus_interval`, no model) and verification
+        frames decide, the model taking no part (then as :meth:`_declare_or_verify`). Returns
+        ``False`` without a move when the pair gives no power within the working powers (the
+        caller searches by contrast)."""
+        res = self.result
+        try:
+            res.blur_measurements += 1
+            lo, hi = pair_focus_interval(f1.image, f1.power_dpt, f2.image, f2.power_dpt, self.camera, roi,
+                                         shape_range=self.shape_range)
+        except InputError as exc:
+            log.info("no pair estimate: %s", exc)
+            return False
+        target = 0.5 * (lo + hi)
+        lo_w, hi_w = working_powers_dpt(self.camera)
+        if not (math.isfinite(target) and lo_w <= target <= hi_w):
+            log.info("the DFD pair's own in-focus power %.3f dpt is unusable", target)
+            return False
+        log.warning("%s: the DFD pair's own in-focus power %.3f dpt (%.3f..%.3f) instead, to be verified",
+                    reason, target, lo, hi)
+        power = self.check_power(target)
+        res.method, res.dfd_power_dpt = "dfd", power
+        self.state = State.MOVE_FOCUS
+        ack = yield from self._set_power(power)
+        res.power_dpt = power
+        res.history.append((ack.ready_s, power, None))
+        no_model = FocusUncertainty(math.inf, math.inf, math.inf, math.inf, math.inf)
+        return (yield from self._declare_or_verify(target, power, ack.ready_s, no_model, f1, f2, roi))
+
     def _declare(self, t_s: float, evidence: str) -> None:
         """Focus is declared: the lens sits at ``result.power_dpt`` and ``evidence`` says why."""
         self.result.status = "focused"

@@ -164,6 +164,10 @@ class DFDController(FocusDeclaration, StateMachine):
         lens_retries, capture_retries, power_limits_dpt: see :class:`~tdfd.autofocus.machine.StateMachine`.
         grid: the estimator's ``(tile, stride)``; when given, only the grid-aligned crop
             around the ROI (:func:`roi_crop_box`) is sent for estimation.
+        pair_fallback: where the model has no opinion (confidence below ``min_confidence``)
+            on a textured ROI, move to the in-focus power the DFD pair gives without the model
+            and let verification frames decide before any contrast search
+            (:meth:`~tdfd.autofocus.declaration.FocusDeclaration._pair_estimate`).
     """
 
     def __init__(self, camera: Camera, *, roi: Roi | None = None, settle_s: float = 0.015, verify: bool | str = "auto",
@@ -175,7 +179,8 @@ class DFDController(FocusDeclaration, StateMachine):
                  max_uncertainty_px: float = 0.25, confidence_scale: float = 0.01, verify_tolerance_px: float = 0.8,
                  verify_z: float = 2.0, shape_range: tuple[float, float] = (1.0, 2.0), refine_steps: int = 1,
                  agree_px: float = 0.5, combine_gate: float = 2.0, refine_z: float = 2.5,
-                 refine_max_uncertainty_px: float = 1.0, contrast_min_peak: float = 1.1) -> None:
+                 refine_max_uncertainty_px: float = 1.0, contrast_min_peak: float = 1.1,
+                 pair_fallback: bool = True) -> None:
         super().__init__(settle_s, lens_retries, capture_retries, power_limits_dpt)
         self.grid = None if grid is None else (int(grid[0]), int(grid[1]))
         if not 0 <= min_confidence <= 1:
@@ -198,6 +203,7 @@ class DFDController(FocusDeclaration, StateMachine):
         self.combine_gate, self.refine_z = float(combine_gate), float(refine_z)
         self.refine_max_uncertainty_px = float(refine_max_uncertainty_px)
         self.min_confidence, self.fallback = float(min_confidence), bool(fallback)
+        self.pair_fallback = bool(pair_fallback)
         self.min_texture_snr = float(min_texture_snr)
         self.contrast_kwargs = dict(contrast or {})
         self.continuous, self.refocus_drop = bool(continuous), float(refocus_drop)
@@ -281,6 +287,10 @@ class DFDController(FocusDeclaration, StateMachine):
             if not self.fallback:
                 raise Abort(reason)
             res.fallback_reason = reason
+            if self.pair_fallback and snr >= self.min_texture_snr and self.verify != "never":
+                outcome = yield from self._pair_estimate(f1, f2, roi, reason)
+                if outcome is not False:
+                    return outcome
             log.warning("%s: falling back to contrast-detect AF", reason)
             yield from self._contrast(None)
             return None
