@@ -71,7 +71,10 @@ def _groups(recs: list, key: Callable[[Any], str]) -> list[list[str]]:
 CAUSES = (
     ("declared out of focus", lambda r: r.declared_out_of_focus),
     ("texture-less ROI: contrast search", lambda r: "texture-less target" in (r.reason or "")),
-    ("model confidence too low: contrast search", lambda r: r.verified is None and "DFD confidence" in (r.reason or "")),
+    ("model confidence too low, the pair's own estimate unusable: contrast search",
+     lambda r: r.verified is None and "DFD confidence" in (r.reason or "")),
+    ("model confidence too low, the pair's own estimate not verified",
+     lambda r: not r.verified and "DFD confidence" in (r.reason or "")),
     ("verification: the reference frames disagree", lambda r: "reference frames disagree" in (r.reason or "")),
     ("verification: the texture does not measure the relative blur",
      lambda r: "does not measure the relative blur" in (r.reason or "")),

@@ -15,8 +15,15 @@ Focus is declared only on the controller's own evidence (:mod:`tdfd.autofocus.ev
   uncertain to take part and the frame's references agree among themselves, is known well
   enough: the lens moves there;
 * otherwise the lens moves by the measured error and verifies again (``refine_steps``),
-  then :meth:`FocusDeclaration._not_confirmed` hands over to the contrast search (or ends
+  never to a power outside :func:`~tdfd.autofocus.evidence.working_powers_dpt`, then
+  :meth:`FocusDeclaration._not_confirmed` hands over to the contrast search (or ends
   ``"unconfirmed"``).
+
+Neither a verification nor a three-frame estimate is declared at a power the frames'
+sharpness order rules out (:func:`~tdfd.autofocus.sharpness_order.sharpness_bracket`: it
+holds whatever the PSF, where the relative blur's Gaussian model can be misled). Where the
+model has no opinion on a textured ROI, :meth:`FocusDeclaration._pair_estimate` moves to
+the DFD pair's own model-free in-focus power and the same steps follow without the model.
 
 The mixin reads the controller's thresholds (``max_uncertainty_px``, ``agree_px``,
 ``verify_tolerance_px``, ``verify_z``, ``shape_range``, ``combine_gate``, ``refine_z``,
@@ -197,7 +204,8 @@ class FocusDeclaration:
                        ) -> Generator[Command, Observation, tuple[Frame, Frame] | None]:
         """The DFD focus could not be confirmed: a contrast-detect search around it, or no declaration."""
         res = self.result
-        res.fallback_reason = reason
+        prior = res.fallback_reason  # why the estimate came without the model (the pair's own), if it did
+        res.fallback_reason = f"{prior}; {reason}" if prior else reason
         if not self.fallback:
             log.warning("%s: focus not declared", reason)
             res.status = "unconfirmed"

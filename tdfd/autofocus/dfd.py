@@ -43,9 +43,11 @@ One single-shot DFD focus (paper sec. 3, "focal length as the varying parameter"
    peak (``contrast_min_peak``) declares nothing.
    :attr:`~tdfd.autofocus.messages.AFResult.evidence` says which evidence declared the focus.
 
-When the ROI confidence is too low (a texture-less target) the controller says so
-(log and :attr:`~tdfd.autofocus.messages.AFResult.fallback_reason`) and falls back to the contrast-detect search
-of :mod:`tdfd.autofocus.contrast`. Lens faults are retried (``lens_retries``), then the
+When the ROI is texture-less the controller says so (log and
+:attr:`~tdfd.autofocus.messages.AFResult.fallback_reason`) and falls back to the
+contrast-detect search of :mod:`tdfd.autofocus.contrast`; when the ROI is textured but the
+model's confidence is too low, the lens first goes to the DFD pair's own model-free
+in-focus power and verification frames decide (``pair_fallback``). Lens faults are retried (``lens_retries``), then the
 run ends with ``status="failed"`` and the reason; the loop itself never raises for a
 hardware fault.
 
