@@ -252,7 +252,9 @@ about four times as long per target).
 The DFD controller declares focus only on its own evidence (`tdfd.autofocus.evidence`): the
 estimate's uncertainty (the model's predicted error, from its confidence, and the ROI tiles'
 disagreement) maps to at most 0.25 px of blur and the DFD pair's own relative blur (no model)
-allows the model's in-focus power (2 frames); or a verification frame at that power
+allows the model's in-focus power, which must focus a depth within the camera's range (a
+depth beyond it is an extrapolation, whose confidence was never calibrated) (2 frames); or a
+verification frame at that power
 confirms it (the relative blur between that frame and the DFD pair, measured on the ROI
 without the depth model, gives the focus error; it must be below 0.8 px of blur with two
 standard uncertainties; 3 frames); or, when it does not, the verification frame's measured

@@ -247,8 +247,9 @@ def test_clamped_with_explicit_error():
     cmd = ctrl.step(ack(2.5))
     r = ctrl.result
     assert r.clamped and "outside the lens range" in r.error
-    # the pair's own relative blur does not allow 4 dpt either: no focus is declared on the estimate alone
-    assert isinstance(cmd, Capture) and cmd.tag == "verify" and r.pair_agrees is False and r.status != "focused"
+    # 0.25 m lies beyond the camera's range (the model's confidence is not calibrated there): no focus is
+    # declared on the estimate alone, and no pair check is needed to say so
+    assert isinstance(cmd, Capture) and cmd.tag == "verify" and r.pair_agrees is None and r.status != "focused"
 
 
 def test_dry_run_never_moves_the_lens():

@@ -149,3 +149,17 @@ def test_without_the_pair_fallback_or_a_verification_the_contrast_search_decides
     for ctrl in (DFDController(CAM, pair_fallback=False), DFDController(CAM, verify="never")):
         res = drive(ctrl, FakePlant(0.45, scripted=(0.6, 0.001)))
         assert res.method == "contrast" and res.frames > 4
+
+
+def test_a_confident_estimate_beyond_the_depth_range_is_verified():
+    """The model's confidence is calibrated on the camera's depth range only: a confident
+    estimate beyond it (an extrapolation) costs a verification frame instead of a 2-frame
+    declaration; the same confidence inside the range declares at 2 frames."""
+    near, far = CAM.depth_range_m
+    inside = drive(DFDController(CAM), FakePlant(0.97 * far, scripted=(0.97 * far, 0.95)))
+    assert inside.evidence == "uncertainty" and inside.frames == 2
+    beyond = drive(DFDController(CAM), FakePlant(0.97 * far, scripted=(1.05 * far, 0.95)))
+    assert beyond.evidence != "uncertainty" and beyond.frames >= 3 and beyond.verified is not None
+    assert beyond.status == "focused" and _blur_px(0.97 * far, beyond.power_dpt) < 1.0
+    lo, hi = working_powers_dpt(CAM, margin_dpt=0.0)
+    assert not lo <= CAM.in_focus_power_dpt(1.05 * far) <= hi

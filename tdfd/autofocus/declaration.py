@@ -5,8 +5,10 @@ model's in-focus power (:class:`FocusDeclaration`, mixed into
 Focus is declared only on the controller's own evidence (:mod:`tdfd.autofocus.evidence`):
 
 * ``"uncertainty"`` (2 frames): the estimate's uncertainty maps to at most
-  ``max_uncertainty_px`` of blur, and the DFD pair's own relative blur, measured without
-  the model (:func:`~tdfd.autofocus.evidence.pair_focus_interval`), allows its power;
+  ``max_uncertainty_px`` of blur, its power focuses a depth within the camera's range (the
+  model's confidence is calibrated there only), and the DFD pair's own relative blur,
+  measured without the model (:func:`~tdfd.autofocus.evidence.pair_focus_interval`),
+  allows its power;
 * ``"verification"`` (3 frames): a ``Capture("verify")`` frame at that power is confirmed
   by its relative blur against the pair (:func:`~tdfd.autofocus.evidence.verify_focus`);
 * ``"refined"`` (3 frames): the verification frame failed, but its measured focus error,
@@ -65,6 +67,12 @@ class FocusDeclaration:
         """
         res = self.result
         confident = unc.blur_px <= self.max_uncertainty_px
+        near_p, far_p = working_powers_dpt(self.camera, margin_dpt=0.0)
+        if confident and not near_p <= target <= far_p:
+            # a depth outside the camera's range: the model extrapolates, its confidence was never calibrated there
+            log.info("DFD estimate %.3f dpt outside the in-focus powers of the depth range (%.3f..%.3f dpt): verify",
+                     target, near_p, far_p)
+            confident = False
         slack = self.agree_px / blur_px_per_dpt(self.camera)
         if confident:  # a second opinion: the pair's own relative blur must allow the model's power
             try:
