@@ -163,3 +163,14 @@ def test_a_confident_estimate_beyond_the_depth_range_is_verified():
     assert beyond.status == "focused" and _blur_px(0.97 * far, beyond.power_dpt) < 1.0
     lo, hi = working_powers_dpt(CAM, margin_dpt=0.0)
     assert not lo <= CAM.in_focus_power_dpt(1.05 * far) <= hi
+
+
+def test_the_pair_fallback_needs_a_texture_well_above_the_noise():
+    """Below ``pair_min_texture_snr`` (here set above the plant's texture) the pair's own estimate
+    is not tried: the contrast search decides; a negative threshold is refused."""
+    strong = drive(DFDController(CAM), FakePlant(0.45, scripted=(0.6, 0.001)))
+    assert strong.method == "dfd" and strong.texture_snr > 3.0
+    res = drive(DFDController(CAM, pair_min_texture_snr=10 * strong.texture_snr), FakePlant(0.45, scripted=(0.6, 0.001)))
+    assert res.method == "contrast"
+    with pytest.raises(InputError, match="pair_min_texture_snr"):
+        DFDController(CAM, pair_min_texture_snr=-1.0)

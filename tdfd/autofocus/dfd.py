@@ -37,19 +37,16 @@ One single-shot DFD focus (paper sec. 3, "focal length as the varying parameter"
    when the model is too uncertain to take part, the frame's measured error alone,
    provided its three relative blurs agree among themselves, is known well enough, the
    lens moves there and focus is declared (evidence ``"refined"``, still 3 frames);
-   otherwise the lens moves by the measured error and
-   verifies again (``refine_steps``), then a contrast-detect search around ``P_e`` takes
-   over (or, with ``fallback=False``, the run ends ``"unconfirmed"``); a search without a
-   peak (``contrast_min_peak``) declares nothing.
+   otherwise the lens moves by the measured error and verifies again (``refine_steps``),
+   then a contrast-detect search around ``P_e`` takes over (or, with ``fallback=False``,
+   the run ends ``"unconfirmed"``); a search without a peak declares nothing.
    :attr:`~tdfd.autofocus.messages.AFResult.evidence` says which evidence declared the focus.
 
-When the ROI is texture-less the controller says so (log and
-:attr:`~tdfd.autofocus.messages.AFResult.fallback_reason`) and falls back to the
-contrast-detect search of :mod:`tdfd.autofocus.contrast`; when the ROI is textured but the
-model's confidence is too low, the lens first goes to the DFD pair's own model-free
-in-focus power and verification frames decide (``pair_fallback``). Lens faults are retried (``lens_retries``), then the
-run ends with ``status="failed"`` and the reason; the loop itself never raises for a
-hardware fault.
+A texture-less ROI is said so (log, :attr:`~tdfd.autofocus.messages.AFResult.fallback_reason`)
+and searched by contrast (:mod:`tdfd.autofocus.contrast`); a textured one the model has no
+opinion on first gets the DFD pair's own model-free in-focus power, verified
+(``pair_fallback``). Lens faults are retried (``lens_retries``), then the run ends with
+``status="failed"`` and the reason; the loop itself never raises for a hardware fault.
 
 Example:
     >>> import numpy as np
@@ -166,10 +163,10 @@ class DFDController(FocusDeclaration, StateMachine):
         lens_retries, capture_retries, power_limits_dpt: see :class:`~tdfd.autofocus.machine.StateMachine`.
         grid: the estimator's ``(tile, stride)``; when given, only the grid-aligned crop
             around the ROI (:func:`roi_crop_box`) is sent for estimation.
-        pair_fallback: where the model has no opinion (confidence below ``min_confidence``)
-            on a textured ROI, move to the in-focus power the DFD pair gives without the model
-            and let verification frames decide before any contrast search
-            (:meth:`~tdfd.autofocus.declaration.FocusDeclaration._pair_estimate`).
+        pair_fallback, pair_min_texture_snr: where the model has no opinion (confidence below
+            ``min_confidence``) on an ROI whose texture is at least ``pair_min_texture_snr`` x
+            the noise, verify the DFD pair's own in-focus power first (``_pair_estimate``; a
+            texture 1.5x the noise fooled the pair and its verification on the bench).
     """
 
     def __init__(self, camera: Camera, *, roi: Roi | None = None, settle_s: float = 0.015, verify: bool | str = "auto",
@@ -182,7 +179,7 @@ class DFDController(FocusDeclaration, StateMachine):
                  verify_z: float = 2.0, shape_range: tuple[float, float] = (1.0, 2.0), refine_steps: int = 1,
                  agree_px: float = 0.5, combine_gate: float = 2.0, refine_z: float = 2.5,
                  refine_max_uncertainty_px: float = 1.0, contrast_min_peak: float = 1.1,
-                 pair_fallback: bool = True) -> None:
+                 pair_fallback: bool = True, pair_min_texture_snr: float = 3.0) -> None:
         super().__init__(settle_s, lens_retries, capture_retries, power_limits_dpt)
         self.grid = None if grid is None else (int(grid[0]), int(grid[1]))
         if not 0 <= min_confidence <= 1:
@@ -205,7 +202,9 @@ class DFDController(FocusDeclaration, StateMachine):
         self.combine_gate, self.refine_z = float(combine_gate), float(refine_z)
         self.refine_max_uncertainty_px = float(refine_max_uncertainty_px)
         self.min_confidence, self.fallback = float(min_confidence), bool(fallback)
-        self.pair_fallback = bool(pair_fallback)
+        if not pair_min_texture_snr >= 0:
+            raise InputError(f"pair_min_texture_snr must be >= 0, got {pair_min_texture_snr}")
+        self.pair_fallback, self.pair_min_texture_snr = bool(pair_fallback), float(pair_min_texture_snr)
         self.min_texture_snr = float(min_texture_snr)
         self.contrast_kwargs = dict(contrast or {})
         self.continuous, self.refocus_drop = bool(continuous), float(refocus_drop)
@@ -289,7 +288,7 @@ class DFDController(FocusDeclaration, StateMachine):
             if not self.fallback:
                 raise Abort(reason)
             res.fallback_reason = reason
-            if self.pair_fallback and snr >= self.min_texture_snr and self.verify != "never":
+            if self.pair_fallback and snr >= self.pair_min_texture_snr and self.verify != "never":
                 outcome = yield from self._pair_estimate(f1, f2, roi, reason)
                 if outcome is not False:
                     return outcome
