@@ -11,7 +11,8 @@ Layers, from the wire up (imports point down this list):
 * :mod:`tdfd.driver.link`: bounded retries (which failures are worth another attempt).
 * :mod:`tdfd.driver.lens`: :class:`OptotuneLens`, the device API (mA, dpt, °C), with
   range checks, typed errors, and a view of the device it verifies (mode re-read after a
-  lost reply, set-points read back on request).
+  lost reply, set-points read back on request); its focal-power mode (temperature limits,
+  ``MwCA``, the focal-power set-point) is the mixin of :mod:`tdfd.driver.focal_power`.
 * :mod:`tdfd.driver.emulator` (a package): a byte-exact device model (:class:`Emulator`,
   ``device``) with first-order focal-power settling (``optics``) and an injectable
   clock, served on a pseudo-terminal by :class:`EmulatorServer` (``pty_server``) or wired
