@@ -3,8 +3,8 @@
 focal-power mode (``MwCA``), and the focal-power set-point (``PwDA``, read back with
 ``PrDA``), range-checked against the limits of the ``MCA`` reply.
 
-The mixin uses the device class's exchanges (``_lock``, ``_query``, ``_send``,
-``_known_mode``, ``_set_verified``, ``get_firmware_type``) and its state (``mode``,
+The mixin uses the device class's exchanges (``_lock``, ``_query``, ``_set``,
+``_known_mode``, ``get_firmware_type``) and its state (``mode``,
 ``verify``, ``firmware_type``, the set-points and limits); see
 :class:`~tdfd.driver.lens.OptotuneLens` for their meaning.
 """
@@ -118,11 +118,8 @@ class FocalPowerMode:
                     f"focal power {power_dpt} dpt outside the driver's limits [{limits.min_dpt:.3f}, {limits.max_dpt:.3f}] dpt"
                 )
             self.focal_power_setpoint_dpt = None  # unknown until sent (and, if asked, read back)
-            frame = p.encode_set_focal_power(raw)
-            if verify:
-                raw = self._set_verified(frame, p.encode_get_focal_power(), raw, Mode.FOCAL_POWER, "focal-power")
-            else:
-                self._send(frame)
+            raw = self._set(p.encode_set_focal_power(raw), p.encode_get_focal_power(), raw, Mode.FOCAL_POWER,
+                            "focal-power", verify)
             self.focal_power_setpoint_dpt = p.focal_power_raw_to_dpt(raw, firmware)
 
     def get_focal_power_dpt(self) -> float:

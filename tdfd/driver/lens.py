@@ -350,12 +350,16 @@ class OptotuneLens(FocalPowerMode):
                 lo_ma, hi_ma = self.current_limits_ma  # type: ignore[misc]
                 raise LensRangeError(f"current {current_ma} mA outside the software limits [{lo_ma:.2f}, {hi_ma:.2f}] mA")
             self.current_setpoint_ma = None  # unknown until sent (and, if asked, read back)
-            frame = p.encode_set_current(raw)
-            if verify:
-                raw = self._set_verified(frame, p.encode_get_current(), raw, Mode.CURRENT, "current")
-            else:
-                self._send(frame)
+            raw = self._set(p.encode_set_current(raw), p.encode_get_current(), raw, Mode.CURRENT, "current", verify)
             self.current_setpoint_ma = p.current_raw_to_ma(raw, max_ma)
+
+    def _set(self, frame: bytes, readback: bytes, raw: int, mode: Mode, what: str, verify: bool) -> int:
+        """Send a set command (no reply); with ``verify`` read it back (:meth:`_set_verified`).
+        Returns the raw set-point as the device holds it (``raw`` when not verified)."""
+        if verify:
+            return self._set_verified(frame, readback, raw, mode, what)
+        self._send(frame)
+        return raw
 
     def _set_verified(self, frame: bytes, readback: bytes, raw: int, mode: Mode, what: str) -> int:
         """Send a set command, read the set-point back, re-send while it differs.
