@@ -125,10 +125,11 @@ def _run_unit(unit: tuple, estimator: Any = None) -> tuple[list, list]:
     from tdfd.autofocus.estimators import load_estimator
     from tdfd.autofocus.sim import SimBench, trial_depths
 
-    seed, k, trials, n_contrast, model, charge, evidence = unit
+    seed, k, trials, n_contrast, model, charge, evidence, cross = unit
     est = estimator if estimator is not None else load_estimator(model)
     dfd, con = [], []
-    with SimBench(estimator=est, seed=seed, psf=PSFS[k], compute_s=charge, evidence_s=evidence) as bench:
+    with SimBench(estimator=est, seed=seed, psf=PSFS[k], compute_s=charge, evidence_s=evidence,
+                  cross_blur_s=cross) as bench:
         for i, d in enumerate(trial_depths(trials, seed)):
             if i % len(PSFS) != k:
                 continue
@@ -166,7 +167,8 @@ def main(argv: list[str] | None = None) -> int:
     t_wall = time.perf_counter()
     with SimBench(estimator=est, seed=seeds[0], compute_s="calibrated") as bench:  # one charge for every unit
         charge, evidence = float(bench.compute_charge_s), float(bench.evidence_charge_s or 0.0)
-    units = [(seed, k, args.trials, args.contrast, args.model, charge, evidence)
+        cross = float(bench.cross_blur_charge_s or 0.0)
+    units = [(seed, k, args.trials, args.contrast, args.model, charge, evidence, cross)
              for seed in seeds for k in range(len(PSFS))]
     dfd: list = []
     con: list = []
@@ -230,7 +232,8 @@ def main(argv: list[str] | None = None) -> int:
         if t:
             timing.append(f"{label} median {statistics.median(t):.1f} / max {max(t):.1f} ms ({len(t)})")
     checks.append("- Bench time to focus of the trials in focus within 3 frames, by evidence (each relative-blur "
-                  f"measurement charged {evidence * 1e3:.1f} ms): " + "; ".join(timing) + ".")
+                  f"measurement charged {evidence * 1e3:.1f} ms, each cross-blur search {cross * 1e3:.0f} ms): "
+                  + "; ".join(timing) + ".")
     notes = [f"seed {r.trial // 10000} trial {r.trial % 10000} ({r.scene}, {r.psf}, {r.target_depth_m:.3f} m): "
              f"{'DECLARED OUT OF FOCUS' if r.declared_out_of_focus else r.status}, blur {r.residual_blur_px:.2f} px, "
              f"{r.frames} frames, evidence {r.evidence}" + (f"; {r.reason}" if r.reason else "")
@@ -240,7 +243,8 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(notes) if notes else "every DFD trial ended in focus")
     body = f"""
 Estimator: {est_name}, charged {charge * 1e3:.1f} ms per estimate and
-{evidence * 1e3:.1f} ms per relative-blur measurement of the controller's evidence (median wall times on this machine).
+{evidence * 1e3:.1f} ms per relative-blur measurement and {cross * 1e3:.0f} ms per cross-blur focus search of the
+controller's evidence (median wall times on this machine).
 {n} targets: seeds {', '.join(map(str, seeds))} of {args.trials} targets each (stratified, uniform in inverse
 depth across 0.3-1.0 m), each a textured plane from every texture family of the bench
 (`tdfd.autofocus.sim.BENCH_TEXTURE_FAMILIES`), with sensor noise; the even trials of each
@@ -275,7 +279,11 @@ decide as above, the model taking no part. A contrast search whose peak rises le
 frame (sensor noise on a texture-less target) declares nothing ("not declared"). Neither a
 verification nor a 3-frame estimate is declared at a power that the frames' sharpness order
 rules out (a frame clearly sharper than another puts focus on its side of their midpoint,
-whatever the PSF; `tdfd.autofocus.sharpness_order`). Thresholds tuned on bench seeds 10-21, never on the
+whatever the PSF; `tdfd.autofocus.sharpness_order`). After a failed verification the three
+frames' cross-blur focus (`tdfd.autofocus.cross_blur`: the power and PSF family, Gaussian or
+disk, under which each frame blurred by the other's PSF matches the other blurred by its own)
+is the 3-frame estimate where the two families agree or the other fits 1.5x worse, and a
+relative-blur 3-frame estimate it disagrees with is not declared. Thresholds tuned on bench seeds 10-21, never on the
 seeds 0-4 of this benchmark. "Declared out of focus": focus declared with a residual blur
 radius of 1 px or more. "Correct DFD estimate withheld": the first DFD estimate was within
 1 px, but focus was not declared on it at once (a 3-frame estimate moves the lens away from

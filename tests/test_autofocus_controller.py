@@ -368,21 +368,28 @@ def test_confident_wrong_depth_is_not_declared(error_dpt):
     """An estimator that answers a wrong depth with high confidence (0.95) must not lead to a declared focus."""
     wrong = 1.0 / (1.0 / TRUE_DEPTH + error_dpt)
     assert _blur_px(TRUE_DEPTH, CAM.in_focus_power_dpt(wrong)) > 1.5  # the answer is well out of focus
-    ctrl = DFDController(CAM, fallback=False, refine_steps=0)
+    ctrl = DFDController(CAM, fallback=False, refine_steps=0, cross_blur=False)
     res = drive(ctrl, FakePlant(TRUE_DEPTH, scripted=(wrong, 0.95)))
     assert res.status == "unconfirmed" and not res.ok and res.evidence is None
     assert res.pair_agrees is False  # the pair's own relative blur contradicts the model
     assert res.verified is False and res.verify_error_dpt == pytest.approx(error_dpt, abs=0.1)
     assert "verification failed" in res.fallback_reason
+    # with the three frames' cross-blur focus, focus is declared, but at the right power
+    res = drive(DFDController(CAM, fallback=False, refine_steps=0), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.95)))
+    assert res.verified is False and (res.status != "focused" or _blur_px(TRUE_DEPTH, res.power_dpt) < 0.5)
 
 
 @pytest.mark.parametrize("error_dpt", [0.4, -0.4])
 def test_confident_wrong_depth_is_corrected_before_focus_is_declared(error_dpt):
     wrong = 1.0 / (1.0 / TRUE_DEPTH + error_dpt)
-    res = drive(DFDController(CAM), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.95)))
+    res = drive(DFDController(CAM, cross_blur=False), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.95)))
     assert res.status == "focused" and res.evidence == "verification" and res.refine_count == 1
     assert res.frames == 4 and res.verified is True
     assert _blur_px(TRUE_DEPTH, res.power_dpt) < 1.0
+    # the three frames' cross-blur focus corrects it one frame earlier
+    res = drive(DFDController(CAM), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.95)))
+    assert res.status == "focused" and res.evidence == "refined" and res.frames == 3
+    assert _blur_px(TRUE_DEPTH, res.power_dpt) < 0.5
 
 
 def test_correct_estimate_declares_within_three_frames():
@@ -445,12 +452,12 @@ def test_three_frame_estimate_without_the_model_is_the_verification_frames_own()
     frame (0.25 dpt is many of its sigmas) one of the two is wrong: no three-frame estimate,
     a further step (4 frames). ``combine_gate=0`` disables the three-frame estimate."""
     wrong = 1.0 / (1.0 / TRUE_DEPTH + 0.25)
-    res = drive(DFDController(CAM, refine_max_uncertainty_px=0.6, fallback=False),
+    res = drive(DFDController(CAM, refine_max_uncertainty_px=0.6, fallback=False, cross_blur=False),
                 FakePlant(TRUE_DEPTH, scripted=(wrong, _conf_for(0.7, wrong))))
     assert res.evidence == "refined" and res.frames == 3 and res.verified is False
     assert res.power_dpt == pytest.approx(CAM.in_focus_power_dpt(wrong) - res.verify_error_dpt, abs=1e-6)
     assert _blur_px(TRUE_DEPTH, res.power_dpt) < 0.5
-    res = drive(DFDController(CAM, fallback=False), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.95)))
+    res = drive(DFDController(CAM, fallback=False, cross_blur=False), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.95)))
     assert res.evidence != "refined" and res.frames == 4
     res = drive(DFDController(CAM, combine_gate=0.0, fallback=False),
                 FakePlant(TRUE_DEPTH, scripted=(wrong, _conf_for(0.7, wrong))))

@@ -110,10 +110,15 @@ def test_a_verification_the_sharpness_order_contradicts_does_not_pass(monkeypatc
     frame is visibly less sharp than the DFD pair's frame nearer focus, so focus is not declared."""
     wrong = 1.0 / (1.0 / TRUE_DEPTH - 0.6)
     monkeypatch.setattr(declaration, "verify_focus", _misled(0.0, passed=True))
-    res = drive(DFDController(CAM, fallback=False, refine_steps=0), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
+    res = drive(DFDController(CAM, fallback=False, refine_steps=0, cross_blur=False),
+                FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
     assert _blur_px(TRUE_DEPTH, CAM.in_focus_power_dpt(wrong)) > 1.5
     assert res.status == "unconfirmed" and res.verified is False
     assert "sharpness order" in res.fallback_reason
+    # the three frames' cross-blur focus then finds the focus the misled relative blur missed
+    res = drive(DFDController(CAM, fallback=False, refine_steps=0), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
+    assert res.status == "focused" and res.evidence == "refined" and res.frames == 3 and res.cross_blur_measurements == 1
+    assert _blur_px(TRUE_DEPTH, res.power_dpt) < 0.3
 
 
 def test_a_three_frame_estimate_the_sharpness_order_contradicts_is_not_declared(monkeypatch):
@@ -121,14 +126,36 @@ def test_a_three_frame_estimate_the_sharpness_order_contradicts_is_not_declared(
     estimate would declare there; the frames' sharpness order rules that power out."""
     wrong = 1.0 / (1.0 / TRUE_DEPTH - 0.6)
     monkeypatch.setattr(declaration, "verify_focus", _misled(+0.3, passed=False))
-    res = drive(DFDController(CAM, fallback=False, refine_steps=0, refine_max_uncertainty_px=0.0),
+    res = drive(DFDController(CAM, fallback=False, refine_steps=0, refine_max_uncertainty_px=0.0, cross_blur=False),
                 FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
     assert res.evidence != "refined" and res.status == "unconfirmed"
     # the same run with the order check's frames all equally sharp would declare: the check is what stops it
     monkeypatch.setattr(declaration, "sharpness_bracket", lambda frames, roi=None: (-math.inf, math.inf))
-    res = drive(DFDController(CAM, fallback=False, refine_steps=0, refine_max_uncertainty_px=0.0),
+    res = drive(DFDController(CAM, fallback=False, refine_steps=0, refine_max_uncertainty_px=0.0, cross_blur=False),
                 FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
     assert res.evidence == "refined" and _blur_px(TRUE_DEPTH, res.power_dpt) > 1.5
+
+
+def test_the_cross_blur_focus_vetoes_a_three_frame_estimate_it_disagrees_with(monkeypatch):
+    """A misled relative blur puts the 3-frame estimate 0.3 dpt further from focus; the cross-blur
+    focus, unsure (here: at its span's edge) but elsewhere, does not confirm it: not declared. Sure
+    (the real search on these frames), the cross-blur focus itself is declared, in focus."""
+    from tdfd.autofocus.cross_blur import CrossBlurFocus
+
+    wrong = 1.0 / (1.0 / TRUE_DEPTH - 0.6)
+    monkeypatch.setattr(declaration, "verify_focus", _misled(+0.3, passed=False))
+    monkeypatch.setattr(declaration, "sharpness_bracket", lambda frames, roi=None: (-math.inf, math.inf))
+    kw = dict(fallback=False, refine_steps=0, refine_max_uncertainty_px=0.0)
+    res = drive(DFDController(CAM, **kw), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
+    assert res.evidence == "refined" and _blur_px(TRUE_DEPTH, res.power_dpt) < 0.3 and res.cross_blur_measurements == 1
+    unsure = CrossBlurFocus(CAM.in_focus_power_dpt(TRUE_DEPTH), "gaussian", True, 1.0)
+    monkeypatch.setattr(declaration, "cross_blur_focus", lambda *a, **k: unsure)
+    res = drive(DFDController(CAM, **kw), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
+    assert res.evidence != "refined" and res.status == "unconfirmed"
+    res = drive(DFDController(CAM, cross_blur=False, **kw), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
+    assert res.evidence == "refined" and _blur_px(TRUE_DEPTH, res.power_dpt) > 1.5  # what the veto prevents
+    with pytest.raises(InputError, match="cross_blur_family_ratio"):
+        DFDController(CAM, cross_blur_family_ratio=0.5)
 
 
 @pytest.mark.parametrize("depth", [0.33, 0.45, 0.8])
@@ -174,3 +201,32 @@ def test_the_pair_fallback_needs_a_texture_well_above_the_noise():
     assert res.method == "contrast"
     with pytest.raises(InputError, match="pair_min_texture_snr"):
         DFDController(CAM, pair_min_texture_snr=-1.0)
+
+
+def test_cross_blur_focus_finds_the_power_and_the_family():
+    """Frames rendered through a Gaussian and through a disk of the same RMS radius: the search
+    recovers the in-focus power within 0.05 dpt (the rendered disk is antialiased, the model's is not)
+    and names the family; J1 matches its integral."""
+    from tdfd.autofocus.cross_blur import bessel_j1, cross_blur_focus
+
+    x = np.linspace(0.0, 30.0, 121)
+    tau = np.linspace(0.0, math.pi, 4001)
+    ref = np.trapezoid(np.cos(tau[None, :] - x[:, None] * np.sin(tau[None, :])), tau, axis=1) / math.pi
+    assert np.abs(bessel_j1(x) - ref).max() < 1e-6
+    import torch
+
+    from tdfd.optics.render import render_at_power
+
+    rng = np.random.default_rng(7)
+    sharp = torch.from_numpy(rng.random((128, 160)).astype(np.float32))[None, None]
+    for depth, shape in ((0.45, "gaussian"), (0.6, "pillbox")):
+        d = torch.full_like(sharp, depth)
+        truth = CAM.in_focus_power_dpt(depth)
+        frames = [(render_at_power(CAM, sharp, d, p, shape=shape)[0, 0].numpy().astype(np.float64), p)
+                  for p in (1.7, 2.7, truth + 0.25)]
+        est = cross_blur_focus(frames, CAM)
+        assert abs(est.power_dpt - truth) < 0.05 and est.shape == shape and not est.at_edge  # 0.14 px
+    with pytest.raises(InputError, match="two frames"):
+        cross_blur_focus(frames[:1], CAM)
+    with pytest.raises(InputError, match="shapes"):
+        cross_blur_focus(frames, CAM, shapes=("cauchy",))

@@ -18,7 +18,8 @@ Layers, bottom to top; a module imports only from its own layer or the ones belo
      :mod:`~tdfd.autofocus.evidence` (what a declared focus rests on: the estimate's
      uncertainty, the DFD pair's own relative blur, a verification frame), measured with
      :mod:`~tdfd.autofocus.relative_blur` (two frames' relative blur, no model; its search
-     range scaled to the camera's blur) and bounded by
+     range scaled to the camera's blur) and :mod:`~tdfd.autofocus.cross_blur` (the
+     in-focus power and PSF family, Gaussian or disk, from all frames of a run), bounded by
      :mod:`~tdfd.autofocus.sharpness_order` (the in-focus powers that the frames' sharpness
      order allows, whatever the PSF).
 

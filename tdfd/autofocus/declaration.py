@@ -15,7 +15,9 @@ Focus is declared only on the controller's own evidence (:mod:`tdfd.autofocus.ev
   weighted with the model's where the two agree
   (:func:`~tdfd.autofocus.evidence.combine_focus_error`), or alone where the model is too
   uncertain to take part and the frame's references agree among themselves, is known well
-  enough: the lens moves there;
+  enough, or the three frames' cross-blur focus (:mod:`~tdfd.autofocus.cross_blur`) is sure
+  of it: the lens moves there (a relative-blur estimate the cross-blur focus contradicts is
+  not declared);
 * otherwise the lens moves by the measured error and verifies again (``refine_steps``),
   never to a power outside :func:`~tdfd.autofocus.evidence.working_powers_dpt`, then
   :meth:`FocusDeclaration._not_confirmed` hands over to the contrast search (or ends
@@ -45,6 +47,7 @@ from ..errors import InputError
 from .evidence import (FocusEstimate, FocusUncertainty, blur_px_per_dpt, combine_focus_error, pair_focus_interval,
                        verify_focus, working_powers_dpt)
 from .messages import Command, Frame, Observation, State
+from .cross_blur import cross_blur_focus
 from .sharpness_order import sharpness_bracket
 from .roi import Roi
 
@@ -138,10 +141,15 @@ class FocusDeclaration:
                 lo_p, hi_p = working_powers_dpt(self.camera)  # the goal must focus a target of the range
                 if self.power_limits_dpt is not None:
                     lo_p, hi_p = max(lo_p, self.power_limits_dpt[0]), min(hi_p, self.power_limits_dpt[1])
-                if est is not None and goal is not None and self.refine_z * est.sigma_dpt <= tol and lo_p <= goal <= hi_p:
+                ok = est is not None and goal is not None and self.refine_z * est.sigma_dpt <= tol and lo_p <= goal <= hi_p
+                source = ("the verification frame's alone" if est is None or math.isnan(est.discrepancy)
+                          else f"{est.discrepancy:.1f} sigma between model and verification")
+                if self.cross_blur:
+                    goal, ok, est, source = self._cross_blur_step(references, roi, power, goal, ok, est, tol, (lo_p, hi_p),
+                                                                  source)
+                if ok:
                     log.info("three-frame estimate: focus error %+.3f +- %.3f dpt (%s): declared at %.3f dpt",
-                             est.error_dpt, est.sigma_dpt, "the verification frame's alone" if math.isnan(est.discrepancy)
-                             else f"{est.discrepancy:.1f} sigma between model and verification", goal)
+                             est.error_dpt, est.sigma_dpt, source, goal)
                     res.refine_count += 1
                     if abs(goal - power) >= 0.005:
                         self.state = State.MOVE_FOCUS
@@ -169,6 +177,30 @@ class FocusDeclaration:
             res.power_dpt = power
             res.history.append((ack.ready_s, power, None))
         return (yield from self._not_confirmed(f"verification failed: {check.reason}", power, (f1, f2)))
+
+    def _cross_blur_step(self, references: list, roi: Roi, power: float, goal: float | None, ok: bool,
+                         est: FocusEstimate | None, tol: float, limits: tuple[float, float], source: str
+                         ) -> tuple[float | None, bool, FocusEstimate | None, str]:
+        """The cross-blur focus of all frames so far (:func:`~tdfd.autofocus.cross_blur.cross_blur_focus`,
+        a Gaussian or a disk PSF): where it is sure (not at its span's edge, inside the sharpness
+        order's bracket and the working powers, and the other family agrees within ``tol`` or fits
+        ``cross_blur_family_ratio`` x worse) it is the three-frame estimate; where it is not, a
+        relative-blur three-frame estimate ``goal`` stands only within ``tol`` of its focus.
+        Returns ``(goal, ok, est, source)``."""
+        self.result.cross_blur_measurements += 1
+        cb = cross_blur_focus(references, self.camera, roi)
+        lo_s, hi_s = sharpness_bracket(references, roi)
+        log.info("cross-blur focus %.3f dpt (%s; the other family %.3f dpt, %.2fx the cost; edge %s), sharpness "
+                 "order %.3f..%.3f dpt", cb.power_dpt, cb.shape, cb.other_power_dpt, cb.other_cost_ratio, cb.at_edge,
+                 lo_s, hi_s)
+        sure = (not cb.at_edge and lo_s <= cb.power_dpt <= hi_s and limits[0] <= cb.power_dpt <= limits[1]
+                and (abs(cb.other_power_dpt - cb.power_dpt) <= tol or cb.other_cost_ratio >= self.cross_blur_family_ratio))
+        if sure:
+            return cb.power_dpt, True, FocusEstimate(power - cb.power_dpt, 0.0, math.nan), f"cross-blur, {cb.shape} PSF"
+        if ok and goal is not None and abs(goal - cb.power_dpt) > tol:
+            log.info("three-frame estimate %.3f dpt: the cross-blur focus disagrees", goal)
+            return goal, False, est, source
+        return goal, ok, est, source
 
     def _pair_estimate(self, f1: Frame, f2: Frame, roi: Roi, reason: str
                        ) -> Generator[Command, Observation, tuple[Frame, Frame] | None | bool]:

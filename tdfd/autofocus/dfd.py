@@ -152,21 +152,20 @@ class DFDController(FocusDeclaration, StateMachine):
         fallback: run the contrast-detect search when DFD is not trusted or its focus is not
             confirmed (else the run fails, or ends ``"unconfirmed"`` with the lens at the DFD
             focus and no focus declared).
-        contrast: keyword arguments of :class:`tdfd.autofocus.contrast.ContrastSearch`
-            for the fallback search.
+        contrast: keyword arguments of the fallback :class:`~tdfd.autofocus.contrast.ContrastSearch`.
         continuous: keep tracking after focusing: live frames at focus are watched, and
             DFD is re-run when their ROI sharpness drops by ``refocus_drop`` or every
             ``refocus_interval_s``; the run ends on a :class:`~tdfd.autofocus.messages.Halt` observation.
-        refocus_drop: relative sharpness drop that triggers a re-estimate.
-        refocus_interval_s: longest time between re-estimates in continuous mode (s).
+        refocus_drop, refocus_interval_s: relative sharpness drop that triggers a re-estimate;
+            longest time between re-estimates in continuous mode (s).
         dry_run: capture and estimate without moving the lens; ends with ``status="dry-run"``.
         lens_retries, capture_retries, power_limits_dpt: see :class:`~tdfd.autofocus.machine.StateMachine`.
-        grid: the estimator's ``(tile, stride)``; when given, only the grid-aligned crop
-            around the ROI (:func:`roi_crop_box`) is sent for estimation.
-        pair_fallback, pair_min_texture_snr: where the model has no opinion (confidence below
-            ``min_confidence``) on an ROI whose texture is at least ``pair_min_texture_snr`` x
-            the noise, verify the DFD pair's own in-focus power first (``_pair_estimate``; a
-            texture 1.5x the noise fooled the pair and its verification on the bench).
+        grid: the estimator's ``(tile, stride)``: only the grid-aligned crop around the ROI is sent.
+        pair_fallback, pair_min_texture_snr: no model opinion on an ROI textured this many times
+            the noise: verify the pair's own in-focus power first (``_pair_estimate``).
+        cross_blur, cross_blur_family_ratio: after a failed verification the three frames'
+            cross-blur focus is the three-frame estimate where the Gaussian and disk fits agree
+            or the other fits this many times worse; it vetoes one it contradicts.
     """
 
     def __init__(self, camera: Camera, *, roi: Roi | None = None, settle_s: float = 0.015, verify: bool | str = "auto",
@@ -179,7 +178,8 @@ class DFDController(FocusDeclaration, StateMachine):
                  verify_z: float = 2.0, shape_range: tuple[float, float] = (1.0, 2.0), refine_steps: int = 1,
                  agree_px: float = 0.5, combine_gate: float = 2.0, refine_z: float = 2.5,
                  refine_max_uncertainty_px: float = 1.0, contrast_min_peak: float = 1.1,
-                 pair_fallback: bool = True, pair_min_texture_snr: float = 3.0) -> None:
+                 pair_fallback: bool = True, pair_min_texture_snr: float = 3.0, cross_blur: bool = True,
+                 cross_blur_family_ratio: float = 1.5) -> None:
         super().__init__(settle_s, lens_retries, capture_retries, power_limits_dpt)
         self.grid = None if grid is None else (int(grid[0]), int(grid[1]))
         if not 0 <= min_confidence <= 1:
@@ -202,9 +202,11 @@ class DFDController(FocusDeclaration, StateMachine):
         self.combine_gate, self.refine_z = float(combine_gate), float(refine_z)
         self.refine_max_uncertainty_px = float(refine_max_uncertainty_px)
         self.min_confidence, self.fallback = float(min_confidence), bool(fallback)
-        if not pair_min_texture_snr >= 0:
-            raise InputError(f"pair_min_texture_snr must be >= 0, got {pair_min_texture_snr}")
+        if not (pair_min_texture_snr >= 0 and cross_blur_family_ratio >= 1):
+            raise InputError(f"need pair_min_texture_snr >= 0 and cross_blur_family_ratio >= 1, got "
+                             f"{pair_min_texture_snr}, {cross_blur_family_ratio}")
         self.pair_fallback, self.pair_min_texture_snr = bool(pair_fallback), float(pair_min_texture_snr)
+        self.cross_blur, self.cross_blur_family_ratio = bool(cross_blur), float(cross_blur_family_ratio)
         self.min_texture_snr = float(min_texture_snr)
         self.contrast_kwargs = dict(contrast or {})
         self.continuous, self.refocus_drop = bool(continuous), float(refocus_drop)

@@ -243,6 +243,8 @@ class AFResult:
             without the model (``None`` if not checked).
         blur_measurements: relative-blur measurements the evidence took (each about 10 ms of
             CPU on the ROI; the simulated bench charges them to the time to focus).
+        cross_blur_measurements: cross-blur focus searches the evidence took (about 100 ms
+            each; charged likewise).
         refocus_count: DFD cycles run (continuous mode counts every re-estimate).
         history: ``(t_s, power_dpt, depth_m)`` of every focus decision (continuous mode).
     """
@@ -268,6 +270,7 @@ class AFResult:
     refine_count: int = 0
     pair_agrees: bool | None = None
     blur_measurements: int = 0
+    cross_blur_measurements: int = 0
     refocus_count: int = 0
     history: list[tuple[float, float, float | None]] = field(default_factory=list)
 

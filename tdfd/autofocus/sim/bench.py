@@ -51,6 +51,7 @@ from ...errors import InputError
 from ...light.guard import DEFAULT_LIMITS, LightGuard, LightLimits
 from ..assist import AssistedDFDController
 from ..contrast import ContrastController
+from ..cross_blur import cross_blur_focus
 from ..dfd import DFDController
 from ..estimators import suggested_confidence_scale, suggested_min_confidence
 from ..interfaces import Estimator
@@ -108,6 +109,7 @@ class SimBench:
         evidence_s: time charged per relative-blur measurement of the controller's evidence
             (``None``: calibrated on this machine when the bench opens, 0 with ``compute_s=0``);
             added to the trial's time to focus (every one lies on the path to the declaration).
+        cross_blur_s: likewise per cross-blur focus search (:mod:`tdfd.autofocus.cross_blur`).
         true_camera: the simulated optics when they differ from ``camera`` (a
             :class:`~tdfd.camera_file.CameraFile`: its camera, ECVFL power offset and focus
             breathing, as in :mod:`tdfd.capture.sim`). ``camera`` is then what the
@@ -123,7 +125,8 @@ class SimBench:
                  faults: Any | None = None, driver_timeout_s: float = 0.1, controller: dict | None = None,
                  contrast: dict | None = None, texture_families: Sequence[str] | None = None,
                  light: Any | None = None, light_limits: LightLimits = DEFAULT_LIMITS,
-                 evidence_s: float | None = None, true_camera: CameraFile | None = None) -> None:
+                 evidence_s: float | None = None, true_camera: CameraFile | None = None,
+                 cross_blur_s: float | None = None) -> None:
         if camera is None:
             camera = estimator.camera if estimator is not None else Camera.preset("reference")
         self.camera, self.estimator = camera, estimator
@@ -149,6 +152,7 @@ class SimBench:
             raise InputError(f"compute_s must be 'calibrated', 'measured' or a time >= 0 (s), got {compute_s!r}")
         self.compute_charge_s: float | str = compute_s if compute_s != "calibrated" else "measured"
         self.evidence_charge_s: float | None = evidence_s
+        self.cross_blur_charge_s: float | None = cross_blur_s
 
     def calibrate_evidence(self, repeats: int = 5) -> float:
         """Median wall time (s) of one relative-blur measurement on the ROI (the controller's evidence,
@@ -165,6 +169,20 @@ class SimBench:
         for _ in range(max(1, repeats)):
             t0 = time.perf_counter()
             relative_blur_px2(a, b, self.roi, max_px2=search)
+            times.append(time.perf_counter() - t0)
+        return float(np.median(times))
+
+    def calibrate_cross_blur(self, repeats: int = 3) -> float:
+        """Median wall time (s) of one cross-blur focus search on three frames of the ROI."""
+        import cv2
+
+        rng = np.random.default_rng(54321)
+        a = cv2.GaussianBlur(rng.uniform(0.2, 0.8, self.readout_hw).astype(np.float32), (0, 0), 1.0)
+        frames = [(cv2.GaussianBlur(a, (0, 0), s), p) for s, p in ((1.5, 1.7), (2.5, 2.7), (1.0, 2.0))]
+        times = []
+        for _ in range(max(1, repeats)):
+            t0 = time.perf_counter()
+            cross_blur_focus(frames, self.camera, self.roi)
             times.append(time.perf_counter() - t0)
         return float(np.median(times))
 
@@ -193,6 +211,8 @@ class SimBench:
         if self.evidence_charge_s is None:
             self.evidence_charge_s = self.calibrate_evidence() if self.compute_s != 0 else 0.0
             log.info("evidence charged per relative-blur measurement: %.1f ms", self.evidence_charge_s * 1e3)
+        if self.cross_blur_charge_s is None:
+            self.cross_blur_charge_s = self.calibrate_cross_blur() if self.compute_s != 0 else 0.0
         if self.compute_s == "calibrated" and self.compute_charge_s == "measured" and self.estimator is not None:
             self.compute_charge_s = self.calibrate_compute()
             log.info("estimator compute time charged per estimate: %.1f ms (median on this machine)",
@@ -310,7 +330,8 @@ class SimBench:
             target_depth_m=float(target), estimated_depth_m=result.estimated_depth_m, ideal_power_dpt=float(ideal),
             final_power_dpt=float(final), residual_blur_px=resid, frames=result.frames,
             lens_commands=result.lens_commands,
-            time_ms=(t_end - t0 + result.blur_measurements * float(self.evidence_charge_s or 0.0)) * 1e3,
+            time_ms=(t_end - t0 + result.blur_measurements * float(self.evidence_charge_s or 0.0)
+                     + result.cross_blur_measurements * float(self.cross_blur_charge_s or 0.0)) * 1e3,
             method=result.method,
             requested=requested, status=result.status, reason=reason, confidence=result.confidence,
             compute_ms=compute, verified=result.verified, trial=trial, evidence=result.evidence,
