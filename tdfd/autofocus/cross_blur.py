@@ -35,7 +35,7 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
@@ -153,7 +153,6 @@ def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera,
     powers = np.array([float(p) for _, p in frames])
     lo, hi = working_powers_dpt(camera) if span_dpt is None else sorted(float(v) for v in span_dpt)
     m = sigma_px_per_dpt(camera)
-    best: CrossBlurFocus | None = None
     per_shape: list[CrossBlurFocus] = []
     for shape in shapes:
         coarse = np.arange(lo, hi + 1e-9, coarse_dpt)
@@ -162,14 +161,8 @@ def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera,
         fine = np.arange(max(lo, coarse[k] - coarse_dpt), min(hi, coarse[k] + coarse_dpt) + 1e-9, fine_dpt)
         fcosts = [_cost(spectra, powers - c, m, shape, f2, f) for c in fine]
         kf = int(np.argmin(fcosts))
-        cand = CrossBlurFocus(float(fine[kf]), shape, k in (0, len(coarse) - 1), fcosts[kf] / f2.size)
-        per_shape.append(cand)
-        if best is None or cand.cost < best.cost:
-            best = cand
-    assert best is not None
-    others = [c for c in per_shape if c is not best]
-    if others:
-        o = min(others, key=lambda c: c.cost)
-        best = CrossBlurFocus(best.power_dpt, best.shape, best.at_edge, best.cost, o.power_dpt,
-                              o.cost / max(best.cost, 1e-300))
-    return best
+        per_shape.append(CrossBlurFocus(float(fine[kf]), shape, k in (0, len(coarse) - 1), fcosts[kf] / f2.size))
+    best, *others = sorted(per_shape, key=lambda c: c.cost)
+    if not others:
+        return best
+    return replace(best, other_power_dpt=others[0].power_dpt, other_cost_ratio=others[0].cost / max(best.cost, 1e-300))

@@ -100,6 +100,7 @@ class FocusDeclaration:
             return (yield from self._not_confirmed(reason, power, (f1, f2)))
         references = [(f1.image, f1.power_dpt), (f2.image, f2.power_dpt)]
         tol = self.verify_tolerance_px / blur_px_per_dpt(self.camera)
+        lo_w, hi_w = working_powers_dpt(self.camera)  # a goal or a step must focus a target of the range
         for step in range(self.refine_steps + 1):
             self.state = State.VERIFY
             fv, _ = yield from self._capture("verify", light=self._verify_light())
@@ -109,18 +110,17 @@ class FocusDeclaration:
             res.blur_measurements += len(check.estimates)
             log.info("verify %d at %.3f dpt: focus error %+.3f +- %.3f dpt: %s", step + 1, power, check.error_dpt,
                      check.sigma_dpt, "ok" if check.passed else check.reason)
-            if check.passed:
-                lo_s, hi_s = sharpness_bracket([(fv.image, fv.power_dpt)] + references, roi)
-                if not lo_s - tol <= power <= hi_s + tol:
-                    check = replace(check, passed=False, consistent=False,
-                                    reason=f"the frames' sharpness order puts focus at {lo_s:.3f}..{hi_s:.3f} dpt")
-                    log.info("verify %d: %s", step + 1, check.reason)
+            references.append((fv.image, fv.power_dpt))
+            lo_s, hi_s = sharpness_bracket(references, roi)  # the powers the frames' sharpness order allows
+            if check.passed and not lo_s - tol <= power <= hi_s + tol:
+                check = replace(check, passed=False, consistent=False,
+                                reason=f"the frames' sharpness order puts focus at {lo_s:.3f}..{hi_s:.3f} dpt")
+                log.info("verify %d: %s", step + 1, check.reason)
             if check.passed:
                 res.verified = True
                 self._declare(fv.t_ready_s, "verification")
                 return f1, f2
             res.verified = False
-            references.append((fv.image, fv.power_dpt))
             if step == 0 and self.combine_gate > 0:
                 # the three-frame estimate: the model's (from the pair) and the verification frame's, weighted;
                 # when the model is too uncertain to take part, the verification frame's alone if its own
@@ -133,20 +133,19 @@ class FocusDeclaration:
                     est = FocusEstimate(check.error_dpt, check.sigma_dpt, math.nan)
                 goal = None if est is None else power - est.error_dpt
                 if goal is not None:
-                    lo_s, hi_s = sharpness_bracket(references, roi)
                     if not lo_s <= goal <= hi_s:
                         log.info("three-frame estimate %.3f dpt: the frames' sharpness order puts focus at %.3f..%.3f dpt",
                                  goal, lo_s, hi_s)
                         est = goal = None
-                lo_p, hi_p = working_powers_dpt(self.camera)  # the goal must focus a target of the range
+                lo_p, hi_p = lo_w, hi_w
                 if self.power_limits_dpt is not None:
                     lo_p, hi_p = max(lo_p, self.power_limits_dpt[0]), min(hi_p, self.power_limits_dpt[1])
                 ok = est is not None and goal is not None and self.refine_z * est.sigma_dpt <= tol and lo_p <= goal <= hi_p
                 source = ("the verification frame's alone" if est is None or math.isnan(est.discrepancy)
                           else f"{est.discrepancy:.1f} sigma between model and verification")
                 if self.cross_blur:
-                    goal, ok, est, source = self._cross_blur_step(references, roi, power, goal, ok, est, tol, (lo_p, hi_p),
-                                                                  source)
+                    goal, ok, est, source = self._cross_blur_step(references, roi, (lo_s, hi_s), power, goal, ok, est,
+                                                                  tol, (lo_p, hi_p), source)
                 if ok:
                     log.info("three-frame estimate: focus error %+.3f +- %.3f dpt (%s): declared at %.3f dpt",
                              est.error_dpt, est.sigma_dpt, source, goal)
@@ -163,7 +162,6 @@ class FocusDeclaration:
                     return f1, f2
             if step == self.refine_steps or not (check.consistent and math.isfinite(check.error_dpt)):
                 break
-            lo_w, hi_w = working_powers_dpt(self.camera)
             if not lo_w <= power - check.error_dpt <= hi_w:
                 # a power that focuses no target of the camera's range: the measurement is wrong (a periodic
                 # texture through a disk PSF past its first MTF zero), not the lens
@@ -178,18 +176,19 @@ class FocusDeclaration:
             res.history.append((ack.ready_s, power, None))
         return (yield from self._not_confirmed(f"verification failed: {check.reason}", power, (f1, f2)))
 
-    def _cross_blur_step(self, references: list, roi: Roi, power: float, goal: float | None, ok: bool,
-                         est: FocusEstimate | None, tol: float, limits: tuple[float, float], source: str
+    def _cross_blur_step(self, references: list, roi: Roi, order: tuple[float, float], power: float,
+                         goal: float | None, ok: bool, est: FocusEstimate | None, tol: float,
+                         limits: tuple[float, float], source: str
                          ) -> tuple[float | None, bool, FocusEstimate | None, str]:
         """The cross-blur focus of all frames so far (:func:`~tdfd.autofocus.cross_blur.cross_blur_focus`,
         a Gaussian or a disk PSF): where it is sure (not at its span's edge, inside the sharpness
-        order's bracket and the working powers, and the other family agrees within ``tol`` or fits
+        order's bracket ``order`` and the working powers, and the other family agrees within ``tol`` or fits
         ``cross_blur_family_ratio`` x worse) it is the three-frame estimate; where it is not, a
         relative-blur three-frame estimate ``goal`` stands only within ``tol`` of its focus.
         Returns ``(goal, ok, est, source)``."""
         self.result.cross_blur_measurements += 1
         cb = cross_blur_focus(references, self.camera, roi)
-        lo_s, hi_s = sharpness_bracket(references, roi)
+        lo_s, hi_s = order
         log.info("cross-blur focus %.3f dpt (%s; the other family %.3f dpt, %.2fx the cost; edge %s), sharpness "
                  "order %.3f..%.3f dpt", cb.power_dpt, cb.shape, cb.other_power_dpt, cb.other_cost_ratio, cb.at_edge,
                  lo_s, hi_s)

@@ -77,6 +77,18 @@ log = logging.getLogger(__name__)
 DEFAULT_READOUT_HW = (256, 320)
 
 
+def _median_wall_s(run: Callable[[], object], repeats: int, warm_up: bool = True) -> float:
+    """Median wall time (s) of ``run()`` over ``repeats`` calls, after an untimed warm-up call."""
+    if warm_up:
+        run()
+    times = []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
 class SimBench:
     """The simulated autofocus bench (a context manager: it owns the emulator and its pty).
 
@@ -154,37 +166,31 @@ class SimBench:
         self.evidence_charge_s: float | None = evidence_s
         self.cross_blur_charge_s: float | None = cross_blur_s
 
+    def _calibration_texture(self) -> np.ndarray:
+        """A smooth random texture of the read-out size (seeded) that the evidence timings run on."""
+        import cv2
+
+        rng = np.random.default_rng(54321)
+        return cv2.GaussianBlur(rng.uniform(0.2, 0.8, self.readout_hw).astype(np.float32), (0, 0), 1.0)
+
     def calibrate_evidence(self, repeats: int = 5) -> float:
         """Median wall time (s) of one relative-blur measurement on the ROI (the controller's evidence,
         :func:`tdfd.autofocus.relative_blur.relative_blur` with its uncertainty, searched over the camera's range:
         :func:`~tdfd.autofocus.relative_blur.relative_blur_search_px2`), after one warm-up run."""
         import cv2
 
-        rng = np.random.default_rng(54321)
-        a = cv2.GaussianBlur(rng.uniform(0.2, 0.8, self.readout_hw).astype(np.float32), (0, 0), 1.0)
+        a = self._calibration_texture()
         b = cv2.GaussianBlur(a, (0, 0), 2.0)
         search = relative_blur_search_px2(self.camera)
-        relative_blur_px2(a, b, self.roi, max_px2=search)
-        times = []
-        for _ in range(max(1, repeats)):
-            t0 = time.perf_counter()
-            relative_blur_px2(a, b, self.roi, max_px2=search)
-            times.append(time.perf_counter() - t0)
-        return float(np.median(times))
+        return _median_wall_s(lambda: relative_blur_px2(a, b, self.roi, max_px2=search), repeats)
 
     def calibrate_cross_blur(self, repeats: int = 3) -> float:
         """Median wall time (s) of one cross-blur focus search on three frames of the ROI."""
         import cv2
 
-        rng = np.random.default_rng(54321)
-        a = cv2.GaussianBlur(rng.uniform(0.2, 0.8, self.readout_hw).astype(np.float32), (0, 0), 1.0)
+        a = self._calibration_texture()
         frames = [(cv2.GaussianBlur(a, (0, 0), s), p) for s, p in ((1.5, 1.7), (2.5, 2.7), (1.0, 2.0))]
-        times = []
-        for _ in range(max(1, repeats)):
-            t0 = time.perf_counter()
-            cross_blur_focus(frames, self.camera, self.roi)
-            times.append(time.perf_counter() - t0)
-        return float(np.median(times))
+        return _median_wall_s(lambda: cross_blur_focus(frames, self.camera, self.roi), repeats, warm_up=False)
 
     def calibrate_compute(self, repeats: int = 7) -> float:
         """Median wall time (s) of the estimator on a pair of frames of the size the DFD
@@ -195,13 +201,8 @@ class SimBench:
         rng = np.random.default_rng(12345)
         a = rng.uniform(0.2, 0.8, (y1 - y0, x1 - x0)).astype(np.float32)
         b = rng.uniform(0.2, 0.8, (y1 - y0, x1 - x0)).astype(np.float32)
-        self.estimator(a, b)
-        times = []
-        for _ in range(max(1, repeats)):
-            t0 = time.perf_counter()
-            self.estimator(a, b)
-            times.append(time.perf_counter() - t0)
-        return float(np.median(times))
+        estimator = self.estimator
+        return _median_wall_s(lambda: estimator(a, b), repeats)
 
     # ------------------------------------------------------------------ life cycle
     def open(self) -> "SimBench":
