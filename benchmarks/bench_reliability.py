@@ -274,16 +274,19 @@ sharp periodic texture does not inflate). Otherwise the lens moves by the measur
 once more (not to a power that focuses no target of the 0.3-1.0 m range); after that a contrast
 search around the estimate (+-0.6 dpt) decides, scanning on outwards where its sharpest frame
 lies at an edge of that span. Where the model has no opinion (confidence too low) on a textured
-ROI, the lens first goes to the DFD pair's own model-free in-focus power and verification frames
-decide as above, the model taking no part. A contrast search whose peak rises less than 1.1x above its least sharp
+ROI, the lens first goes to the DFD pair's own model-free in-focus power (its relative blur's,
+else its cross-blur focus, below) and verification frames decide as above, the model taking no
+part; a 3-frame estimate after the pair's cross-blur focus must confirm it within 0.8 px. A contrast search whose peak rises less than 1.1x above its least sharp
 frame (sensor noise on a texture-less target) declares nothing ("not declared"). Neither a
 verification nor a 3-frame estimate is declared at a power that the frames' sharpness order
 rules out (a frame clearly sharper than another puts focus on its side of their midpoint,
 whatever the PSF; `tdfd.autofocus.sharpness_order`). After a failed verification the three
 frames' cross-blur focus (`tdfd.autofocus.cross_blur`: the power and PSF family, Gaussian or
 disk, under which each frame blurred by the other's PSF matches the other blurred by its own)
-is the 3-frame estimate where the two families agree or the other fits 1.5x worse, and a
-relative-blur 3-frame estimate it disagrees with is not declared. Thresholds tuned on bench seeds 10-21, never on the
+is the 3-frame estimate where the two families agree or the other fits 1.5x worse and its
+cost curve is not flat (the median candidate costs at least 1.1x the best: frames that differ
+by little more than their noise single no power out), and a relative-blur 3-frame estimate it
+disagrees with is not declared. Thresholds tuned on bench seeds 10-21, never on the
 seeds 0-4 of this benchmark. "Declared out of focus": focus declared with a residual blur
 radius of 1 px or more. "Correct DFD estimate withheld": the first DFD estimate was within
 1 px, but focus was not declared on it at once (a 3-frame estimate moves the lens away from

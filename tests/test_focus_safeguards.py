@@ -230,3 +230,87 @@ def test_cross_blur_focus_finds_the_power_and_the_family():
         cross_blur_focus(frames[:1], CAM)
     with pytest.raises(InputError, match="shapes"):
         cross_blur_focus(frames, CAM, shapes=("cauchy",))
+
+
+
+def _noisy_frames(texture: float, noise: float, seed: int) -> tuple[list, float]:
+    import torch
+
+    from tdfd.optics.render import render_at_power
+
+    rng = np.random.default_rng(seed)
+    sharp = torch.from_numpy((0.5 + texture * (rng.random((96, 128)) - 0.5)).astype(np.float32))[None, None]
+    depth = float(rng.uniform(0.32, 0.95))
+    truth = CAM.in_focus_power_dpt(depth)
+    frames = [(render_at_power(CAM, sharp, torch.full_like(sharp, depth), p, shape="gaussian")[0, 0].numpy()
+               .astype(np.float64) + rng.normal(0.0, noise, (96, 128)), p) for p in (1.7, 2.7, truth + 0.25)]
+    return frames, truth
+
+
+def test_the_cross_blur_contrast_tells_a_texture_from_noise():
+    """A texture well above the noise singles the in-focus power out (contrast over 1, found
+    within 0.05 dpt); a texture at a tenth of the noise leaves the cost flat (contrast under
+    0.1). A negative minimum is refused."""
+    from tdfd.autofocus.cross_blur import cross_blur_focus
+
+    for seed in range(3):
+        frames, truth = _noisy_frames(1.0, 0.01, seed)
+        strong = cross_blur_focus(frames, CAM)
+        assert strong.contrast > 1.0 and abs(strong.power_dpt - truth) < 0.05
+        weak = cross_blur_focus(_noisy_frames(0.002, 0.02, seed)[0], CAM)
+        assert weak.contrast < 0.1
+    with pytest.raises(InputError, match="cross_blur_min_contrast"):
+        DFDController(CAM, cross_blur_min_contrast=-0.1)
+
+
+def test_a_flat_cross_blur_focus_is_not_sure(monkeypatch):
+    """After a failed verification the cross-blur focus, right and otherwise sure, is the
+    3-frame estimate with a contrast of 0.5, and not with a flat one (0.05): the misled
+    relative-blur estimate it disagrees with is vetoed and nothing is declared."""
+    from tdfd.autofocus.cross_blur import CrossBlurFocus
+
+    wrong = 1.0 / (1.0 / TRUE_DEPTH - 0.6)
+    monkeypatch.setattr(declaration, "verify_focus", _misled(+0.3, passed=False))
+    monkeypatch.setattr(declaration, "sharpness_bracket", lambda frames, roi=None: (-math.inf, math.inf))
+    kw = dict(fallback=False, refine_steps=0, refine_max_uncertainty_px=0.0)
+    for contrast, declared in ((0.5, True), (0.05, False)):
+        focus = CrossBlurFocus(CAM.in_focus_power_dpt(TRUE_DEPTH), "gaussian", False, 1.0, contrast=contrast)
+        monkeypatch.setattr(declaration, "cross_blur_focus", lambda *a, focus=focus, **k: focus)
+        res = drive(DFDController(CAM, **kw), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
+        assert (res.evidence == "refined") == declared and (res.status == "focused") == declared
+        if declared:
+            assert _blur_px(TRUE_DEPTH, res.power_dpt) < 0.1
+
+
+@pytest.mark.parametrize("depth", [0.35, 0.7])
+def test_no_pair_relative_blur_the_pairs_cross_blur_focus_is_verified(monkeypatch, depth):
+    """No model opinion and no usable relative blur from the pair (forced): the lens goes to the
+    pair's own cross-blur focus and the frames there decide, in focus within 3 frames, without
+    a contrast search. With the cross-blur off, the contrast search decides."""
+    def unusable(*a, **k):
+        raise InputError("forced: no relative blur")
+
+    monkeypatch.setattr(declaration, "pair_focus_interval", unusable)
+    res = drive(DFDController(CAM), FakePlant(depth, scripted=(0.6, 0.001)))
+    assert res.method == "dfd" and res.status == "focused" and res.frames <= 3
+    assert res.evidence in ("verification", "refined") and res.cross_blur_measurements >= 1
+    assert _blur_px(depth, res.power_dpt) < 0.8
+    res = drive(DFDController(CAM, cross_blur=False), FakePlant(depth, scripted=(0.6, 0.001)))
+    assert res.method == "contrast"
+
+
+def test_a_three_frame_estimate_must_confirm_the_pairs_cross_blur_focus(monkeypatch):
+    """The pair's cross-blur focus (forced 0.4 dpt off, 1.9 px) and the three frames' (right)
+    disagree: without a model to arbitrate, the three-frame estimate is not declared and the
+    contrast search decides. Where the two agree, the three-frame estimate is declared."""
+    from tdfd.autofocus.cross_blur import CrossBlurFocus
+
+    truth = CAM.in_focus_power_dpt(0.5)
+    monkeypatch.setattr(declaration, "pair_focus_interval", lambda *a, **k: (math.nan, math.nan))
+    monkeypatch.setattr(declaration, "verify_focus", _misled(+0.4, passed=False))
+    for pair_off, declared in ((0.4, False), (0.05, True)):
+        monkeypatch.setattr(declaration, "cross_blur_focus", lambda frames, *a, off=pair_off, **k: CrossBlurFocus(
+            truth + (off if len(frames) == 2 else 0.0), "gaussian", False, 1.0, contrast=5.0))
+        res = drive(DFDController(CAM, refine_steps=0), FakePlant(0.5, scripted=(0.6, 0.001)))
+        assert res.cross_blur_measurements == 2 and (res.evidence == "refined") == declared
+        assert res.method == ("dfd" if declared else "contrast") and res.status == "focused"

@@ -16,8 +16,9 @@ Focus is declared only on the controller's own evidence (:mod:`tdfd.autofocus.ev
   (:func:`~tdfd.autofocus.evidence.combine_focus_error`), or alone where the model is too
   uncertain to take part and the frame's references agree among themselves, is known well
   enough, or the three frames' cross-blur focus (:mod:`~tdfd.autofocus.cross_blur`) is sure
-  of it: the lens moves there (a relative-blur estimate the cross-blur focus contradicts is
-  not declared);
+  of it (not at its span's edge, the two PSF families agree or one fits clearly better, and
+  its cost curve has a contrast of at least ``cross_blur_min_contrast``): the lens moves
+  there (a relative-blur estimate the cross-blur focus contradicts is not declared);
 * otherwise the lens moves by the measured error and verifies again (``refine_steps``),
   never to a power outside :func:`~tdfd.autofocus.evidence.working_powers_dpt`, then
   :meth:`FocusDeclaration._not_confirmed` hands over to the contrast search (or ends
@@ -27,11 +28,14 @@ Neither a verification nor a three-frame estimate is declared at a power the fra
 sharpness order rules out (:func:`~tdfd.autofocus.sharpness_order.sharpness_bracket`: it
 holds whatever the PSF, where the relative blur's Gaussian model can be misled). Where the
 model has no opinion on a textured ROI, :meth:`FocusDeclaration._pair_estimate` moves to
-the DFD pair's own model-free in-focus power and the same steps follow without the model.
+the DFD pair's own model-free in-focus power (its relative blur's, else its cross-blur
+focus) and the same steps follow without the model; a three-frame estimate that follows the
+pair's cross-blur focus must confirm it within the verification tolerance.
 
 The mixin reads the controller's thresholds (``max_uncertainty_px``, ``agree_px``,
 ``verify_tolerance_px``, ``verify_z``, ``shape_range``, ``combine_gate``, ``refine_z``,
-``refine_max_uncertainty_px``, ``refine_steps``, ``verify``, ``fallback``) and uses the
+``refine_max_uncertainty_px``, ``refine_steps``, ``verify``, ``fallback``, ``cross_blur``,
+``cross_blur_family_ratio``, ``cross_blur_min_contrast``) and uses the
 state machine's ``_capture`` / ``_set_power`` and the controller's ``_contrast`` and
 ``_verify_light``.
 """
@@ -61,9 +65,12 @@ class FocusDeclaration:
     docstring for the attributes and methods of the controller they use)."""
 
     def _declare_or_verify(self, target: float, power: float, ready_s: float, unc: FocusUncertainty,
-                           f1: Frame, f2: Frame, roi: Roi) -> Generator[Command, Observation, tuple[Frame, Frame] | None]:
+                           f1: Frame, f2: Frame, roi: Roi, *, anchored: bool = False
+                           ) -> Generator[Command, Observation, tuple[Frame, Frame] | None]:
         """The lens has settled at ``power`` (the model's in-focus power ``target``, ready at
         ``ready_s``): declare focus on the estimate's uncertainty, or verify (module docstring).
+        ``anchored``: ``target`` is the pair's own cross-blur focus, which a three-frame estimate
+        must confirm within the verification tolerance (no model to arbitrate between the two).
 
         Returns:
             The DFD pair, or ``None`` if the contrast search set the focus.
@@ -146,6 +153,11 @@ class FocusDeclaration:
                 if self.cross_blur:
                     goal, ok, est, source = self._cross_blur_step(references, roi, (lo_s, hi_s), power, goal, ok, est,
                                                                   tol, (lo_p, hi_p), source)
+                if ok and anchored and abs(goal - target) > tol:
+                    # the pair's focus and the three frames' disagree: one of them is wrong, a further step
+                    log.info("three-frame estimate %.3f dpt: the pair's own cross-blur focus %.3f dpt disagrees",
+                             goal, target)
+                    ok = False
                 if ok:
                     log.info("three-frame estimate: focus error %+.3f +- %.3f dpt (%s): declared at %.3f dpt",
                              est.error_dpt, est.sigma_dpt, source, goal)
@@ -189,10 +201,11 @@ class FocusDeclaration:
         self.result.cross_blur_measurements += 1
         cb = cross_blur_focus(references, self.camera, roi)
         lo_s, hi_s = order
-        log.info("cross-blur focus %.3f dpt (%s; the other family %.3f dpt, %.2fx the cost; edge %s), sharpness "
-                 "order %.3f..%.3f dpt", cb.power_dpt, cb.shape, cb.other_power_dpt, cb.other_cost_ratio, cb.at_edge,
-                 lo_s, hi_s)
+        log.info("cross-blur focus %.3f dpt (%s, contrast %.3f; the other family %.3f dpt, %.2fx the cost; edge %s), "
+                 "sharpness order %.3f..%.3f dpt", cb.power_dpt, cb.shape, cb.contrast, cb.other_power_dpt,
+                 cb.other_cost_ratio, cb.at_edge, lo_s, hi_s)
         sure = (not cb.at_edge and lo_s <= cb.power_dpt <= hi_s and limits[0] <= cb.power_dpt <= limits[1]
+                and cb.contrast >= self.cross_blur_min_contrast
                 and (abs(cb.other_power_dpt - cb.power_dpt) <= tol or cb.other_cost_ratio >= self.cross_blur_family_ratio))
         if sure:
             return cb.power_dpt, True, FocusEstimate(power - cb.power_dpt, 0.0, math.nan), f"cross-blur, {cb.shape} PSF"
@@ -210,20 +223,34 @@ class FocusDeclaration:
         ``False`` without a move when the pair gives no power within the working powers (the
         caller searches by contrast)."""
         res = self.result
+        lo_w, hi_w = working_powers_dpt(self.camera)
         try:
             res.blur_measurements += 1
             lo, hi = pair_focus_interval(f1.image, f1.power_dpt, f2.image, f2.power_dpt, self.camera, roi,
                                          shape_range=self.shape_range)
         except InputError as exc:
             log.info("no pair estimate: %s", exc)
-            return False
+            lo, hi = math.nan, math.nan
         target = 0.5 * (lo + hi)
-        lo_w, hi_w = working_powers_dpt(self.camera)
         if not (math.isfinite(target) and lo_w <= target <= hi_w):
             log.info("the DFD pair's own in-focus power %.3f dpt is unusable", target)
-            return False
-        log.warning("%s: the DFD pair's own in-focus power %.3f dpt (%.3f..%.3f) instead, to be verified",
-                    reason, target, lo, hi)
+            if not self.cross_blur:
+                return False
+            # the pair's cross-blur focus: a place to take the verification frame from (two frames
+            # are half the time over 1 px wrong on periodic textures; the three frames' one decides)
+            res.cross_blur_measurements += 1
+            try:
+                cb = cross_blur_focus([(f1.image, f1.power_dpt), (f2.image, f2.power_dpt)], self.camera, roi)
+            except InputError as exc:
+                log.info("no cross-blur focus of the pair: %s", exc)
+                return False
+            log.info("the pair's cross-blur focus %.3f dpt (%s, contrast %.3f, edge %s)", cb.power_dpt, cb.shape,
+                     cb.contrast, cb.at_edge)
+            if cb.at_edge or not lo_w <= cb.power_dpt <= hi_w or cb.contrast < self.cross_blur_min_contrast:
+                return False
+            target, lo, hi = cb.power_dpt, math.nan, math.nan
+        log.warning("%s: the DFD pair's own in-focus power %.3f dpt (%s) instead, to be verified", reason, target,
+                    f"{lo:.3f}..{hi:.3f}" if math.isfinite(lo + hi) else "cross-blur")
         power = self.check_power(target)
         res.method, res.dfd_power_dpt = "dfd", power
         self.state = State.MOVE_FOCUS
@@ -231,7 +258,8 @@ class FocusDeclaration:
         res.power_dpt = power
         res.history.append((ack.ready_s, power, None))
         no_model = FocusUncertainty(math.inf, math.inf, math.inf, math.inf, math.inf)
-        return (yield from self._declare_or_verify(target, power, ack.ready_s, no_model, f1, f2, roi))
+        return (yield from self._declare_or_verify(target, power, ack.ready_s, no_model, f1, f2, roi,
+                                                   anchored=not math.isfinite(lo + hi)))
 
     def _declare(self, t_s: float, evidence: str) -> None:
         """Focus is declared: the lens sits at ``result.power_dpt`` and ``evidence`` says why."""

@@ -26,20 +26,12 @@ One single-shot DFD focus (paper sec. 3, "focal length as the varying parameter"
 5. In-focus power ``P_e = 1/d_o + 1/d_s - 1/f0`` (CONTRACT section 1), checked against
    the lens's range (clamped only with an explicit error in the result).
 6. ``SetPower(P_e)``.
-7. Focus is declared only on the controller's own evidence
-   (:mod:`tdfd.autofocus.evidence`): the estimate's uncertainty maps to at most
-   ``max_uncertainty_px`` of blur and the DFD pair's own relative blur, measured without
-   the model, allows its power (declared when the lens has settled), or a
-   ``Capture("verify")`` frame at ``P_e`` confirms it (its relative blur against the DFD
-   pair, measured on the ROI without the depth model). A failed verification gives a
-   measured focus error: when it and the model's estimate agree, their weighted mean
-   (:func:`~tdfd.autofocus.evidence.combine_focus_error`, the three-frame estimate), or,
-   when the model is too uncertain to take part, the frame's measured error alone,
-   provided its three relative blurs agree among themselves, is known well enough, the
-   lens moves there and focus is declared (evidence ``"refined"``, still 3 frames);
-   otherwise the lens moves by the measured error and verifies again (``refine_steps``),
-   then a contrast-detect search around ``P_e`` takes over (or, with ``fallback=False``,
-   the run ends ``"unconfirmed"``); a search without a peak declares nothing.
+7. Focus is declared only on the controller's own evidence (:mod:`tdfd.autofocus.evidence`;
+   the steps are :mod:`tdfd.autofocus.declaration`'s): the estimate's uncertainty and the
+   DFD pair's own relative blur (2 frames), a ``Capture("verify")`` frame at ``P_e``, or the
+   three frames' estimate after a failed verification (still 3 frames); otherwise further
+   DFD steps, then a contrast-detect search around ``P_e`` (or, with ``fallback=False``, the
+   run ends ``"unconfirmed"``); a search without a peak declares nothing.
    :attr:`~tdfd.autofocus.messages.AFResult.evidence` says which evidence declared the focus.
 
 A texture-less ROI is said so (log, :attr:`~tdfd.autofocus.messages.AFResult.fallback_reason`)
@@ -163,9 +155,11 @@ class DFDController(FocusDeclaration, StateMachine):
         grid: the estimator's ``(tile, stride)``: only the grid-aligned crop around the ROI is sent.
         pair_fallback, pair_min_texture_snr: no model opinion on an ROI textured this many times
             the noise: verify the pair's own in-focus power first (``_pair_estimate``).
-        cross_blur, cross_blur_family_ratio: after a failed verification the three frames'
-            cross-blur focus is the three-frame estimate where the Gaussian and disk fits agree
-            or the other fits this many times worse; it vetoes one it contradicts.
+        cross_blur, cross_blur_family_ratio, cross_blur_min_contrast: after a failed verification
+            the three frames' cross-blur focus is the three-frame estimate where the Gaussian and
+            disk fits agree or the other fits this many times worse, and its cost curve's
+            contrast is at least the minimum; it vetoes one it contradicts (module
+            :mod:`~tdfd.autofocus.declaration`, which also uses the pair's own cross-blur focus).
     """
 
     def __init__(self, camera: Camera, *, roi: Roi | None = None, settle_s: float = 0.015, verify: bool | str = "auto",
@@ -179,7 +173,7 @@ class DFDController(FocusDeclaration, StateMachine):
                  agree_px: float = 0.5, combine_gate: float = 2.0, refine_z: float = 2.5,
                  refine_max_uncertainty_px: float = 1.0, contrast_min_peak: float = 1.1,
                  pair_fallback: bool = True, pair_min_texture_snr: float = 3.0, cross_blur: bool = True,
-                 cross_blur_family_ratio: float = 1.5) -> None:
+                 cross_blur_family_ratio: float = 1.5, cross_blur_min_contrast: float = 0.1) -> None:
         super().__init__(settle_s, lens_retries, capture_retries, power_limits_dpt)
         self.grid = None if grid is None else (int(grid[0]), int(grid[1]))
         if not 0 <= min_confidence <= 1:
@@ -202,11 +196,12 @@ class DFDController(FocusDeclaration, StateMachine):
         self.combine_gate, self.refine_z = float(combine_gate), float(refine_z)
         self.refine_max_uncertainty_px = float(refine_max_uncertainty_px)
         self.min_confidence, self.fallback = float(min_confidence), bool(fallback)
-        if not (pair_min_texture_snr >= 0 and cross_blur_family_ratio >= 1):
-            raise InputError(f"need pair_min_texture_snr >= 0 and cross_blur_family_ratio >= 1, got "
-                             f"{pair_min_texture_snr}, {cross_blur_family_ratio}")
+        if not (pair_min_texture_snr >= 0 and cross_blur_family_ratio >= 1 and cross_blur_min_contrast >= 0):
+            raise InputError("need pair_min_texture_snr >= 0, cross_blur_family_ratio >= 1, cross_blur_min_contrast >= 0, "
+                             f"got {pair_min_texture_snr}, {cross_blur_family_ratio}, {cross_blur_min_contrast}")
         self.pair_fallback, self.pair_min_texture_snr = bool(pair_fallback), float(pair_min_texture_snr)
         self.cross_blur, self.cross_blur_family_ratio = bool(cross_blur), float(cross_blur_family_ratio)
+        self.cross_blur_min_contrast = float(cross_blur_min_contrast)
         self.min_texture_snr = float(min_texture_snr)
         self.contrast_kwargs = dict(contrast or {})
         self.continuous, self.refocus_drop = bool(continuous), float(refocus_drop)
