@@ -14,7 +14,9 @@ for the Gaussian, ``2 J1(2 pi f R) / (2 pi f R)`` with ``R = 2 sigma`` for the d
 same RMS radius). Unlike the relative blur's Gaussian fit (:mod:`~tdfd.autofocus.relative_blur`)
 it models a disk's MTF, zeros and contrast reversals included, at a periodic texture's few
 frequencies. No regulariser in the denominator: one creates minima where every frame is
-blurred away.
+blurred away. The OTFs being real, each pair's residual comes from the spectra's powers and
+real cross terms, computed once; the disk's ``2 J1(a) / a`` is tabulated (0.001 steps of
+``a``): one search on three 128x160 ROIs takes about 25 ms of numpy on the 2-core machine.
 
 Example:
     >>> import numpy as np
@@ -100,11 +102,32 @@ def bessel_j1(x: np.ndarray) -> np.ndarray:
     return np.where(ax <= 3.0, small, large)
 
 
-def disk_otf(radius_px: float, f: np.ndarray) -> np.ndarray:
-    """OTF of a uniform disk of radius ``radius_px`` at spatial frequencies ``f`` (cycles/px)."""
-    a = 2.0 * math.pi * float(radius_px) * np.asarray(f, dtype=np.float64)
+#: ``2 J1(a) / a`` tabulated at 0.001 steps of ``a`` up to 400 (linear interpolation error
+#: under 1e-7), built on first use: the disk OTF of every candidate without evaluating J1
+_DISK_TABLE_STEP, _DISK_TABLE_END = 1e-3, 400.0
+_disk_table: np.ndarray | None = None
+
+
+def _disk_profile(a: np.ndarray) -> np.ndarray:
+    """``2 J1(a) / a`` (1 at 0) for ``a >= 0``: tabulated where the table reaches, exact beyond."""
+    global _disk_table
+    if _disk_table is None:
+        x = np.arange(0.0, _DISK_TABLE_END + _DISK_TABLE_STEP, _DISK_TABLE_STEP)
+        x[0] = 1.0
+        _disk_table = 2.0 * bessel_j1(x) / x
+        _disk_table[0] = 1.0
+    if a.size and float(a.max()) < _DISK_TABLE_END:
+        x = a / _DISK_TABLE_STEP
+        k = x.astype(np.intp)
+        w = x - k
+        return _disk_table[k] * (1.0 - w) + _disk_table[k + 1] * w
     safe = np.where(a > 1e-9, a, 1.0)
     return np.where(a > 1e-9, 2.0 * bessel_j1(safe) / safe, 1.0)
+
+
+def disk_otf(radius_px: float, f: np.ndarray) -> np.ndarray:
+    """OTF of a uniform disk of radius ``radius_px`` at spatial frequencies ``f`` (cycles/px)."""
+    return _disk_profile(np.abs(2.0 * math.pi * float(radius_px) * np.asarray(f, dtype=np.float64)))
 
 
 def _otf(sigma_px: float, shape: str, f2: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -113,14 +136,18 @@ def _otf(sigma_px: float, shape: str, f2: np.ndarray, f: np.ndarray) -> np.ndarr
     return disk_otf(2.0 * sigma_px, f)
 
 
-def _cost(spectra: list[np.ndarray], offsets: np.ndarray, m: float, shape: str, f2: np.ndarray, f: np.ndarray) -> float:
+def _cost(power: list[np.ndarray], cross: dict[tuple[int, int], np.ndarray], offsets: np.ndarray, m: float,
+          shape: str, f2: np.ndarray, f: np.ndarray) -> float:
+    """The profile likelihood of the candidate whose frames lie ``offsets`` dpt from focus.
+    The OTFs are real, so ``|S_i H_j - S_j H_i|^2 = |S_i|^2 H_j^2 + |S_j|^2 H_i^2 - 2 H_i H_j Re(S_i S_j*)``
+    from the spectra's powers ``power`` and cross terms ``cross`` (real arrays)."""
     otfs = [_otf(m * abs(float(o)), shape, f2, f) for o in offsets]
+    sq = [h * h for h in otfs]
     total = 0.0
-    for i in range(len(spectra)):
-        for j in range(i + 1, len(spectra)):
-            r = spectra[i] * otfs[j] - spectra[j] * otfs[i]
-            den = otfs[i] ** 2 + otfs[j] ** 2
-            total += float((np.abs(r) ** 2 / np.where(den > 1e-300, den, 1e-300)).sum())
+    for (i, j), c in cross.items():
+        num = power[i] * sq[j] + power[j] * sq[i] - 2.0 * otfs[i] * otfs[j] * c
+        den = sq[i] + sq[j]
+        total += float((np.maximum(num, 0.0) / np.where(den > 1e-300, den, 1e-300)).sum())
     return total
 
 
@@ -154,6 +181,8 @@ def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera,
     h, w = crops[0].shape
     window = np.hanning(h)[:, None] * np.hanning(w)[None, :]
     spectra = [np.fft.rfft2((c - c.mean()) * window) for c in crops]
+    power = [np.abs(sp) ** 2 for sp in spectra]
+    cross = {(i, j): (spectra[i] * spectra[j].conj()).real for i in range(len(spectra)) for j in range(i + 1, len(spectra))}
     f2 = np.fft.fftfreq(h)[:, None] ** 2 + np.fft.rfftfreq(w)[None, :] ** 2
     f = np.sqrt(f2)
     powers = np.array([float(p) for _, p in frames])
@@ -162,10 +191,10 @@ def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera,
     per_shape: list[CrossBlurFocus] = []
     for shape in shapes:
         coarse = np.arange(lo, hi + 1e-9, coarse_dpt)
-        costs = [_cost(spectra, powers - c, m, shape, f2, f) for c in coarse]
+        costs = [_cost(power, cross, powers - c, m, shape, f2, f) for c in coarse]
         k = int(np.argmin(costs))
         fine = np.arange(max(lo, coarse[k] - coarse_dpt), min(hi, coarse[k] + coarse_dpt) + 1e-9, fine_dpt)
-        fcosts = [_cost(spectra, powers - c, m, shape, f2, f) for c in fine]
+        fcosts = [_cost(power, cross, powers - c, m, shape, f2, f) for c in fine]
         kf = int(np.argmin(fcosts))
         per_shape.append(CrossBlurFocus(float(fine[kf]), shape, k in (0, len(coarse) - 1), fcosts[kf] / f2.size,
                                         contrast=float(np.median(costs)) / max(fcosts[kf], 1e-300) - 1.0))
