@@ -286,7 +286,8 @@ disk, under which each frame blurred by the other's PSF matches the other blurre
 is the 3-frame estimate where the two families agree or the other fits 1.5x worse and its
 cost curve is not flat (the median candidate costs at least 1.1x the best: frames that differ
 by little more than their noise single no power out), and a relative-blur 3-frame estimate it
-disagrees with is not declared. Thresholds tuned on bench seeds 10-21, never on the
+disagrees with is not declared; nor is a verification that it, sure, puts farther than 0.8 px
+from the lens's power (the cross-blur focus then is the 3-frame estimate). Thresholds tuned on bench seeds 10-21, never on the
 seeds 0-4 of this benchmark. "Declared out of focus": focus declared with a residual blur
 radius of 1 px or more. "Correct DFD estimate withheld": the first DFD estimate was within
 1 px, but focus was not declared on it at once (a 3-frame estimate moves the lens away from

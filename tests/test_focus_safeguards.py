@@ -327,3 +327,19 @@ def test_the_tabulated_disk_otf_matches_j1():
         exact = np.where(a > 0, 2.0 * bessel_j1(np.where(a > 0, a, 1.0)) / np.where(a > 0, a, 1.0), 1.0)
         assert np.abs(disk_otf(radius, f) - exact).max() < 1e-6, radius
     assert disk_otf(5.0, np.zeros(3)).tolist() == [1.0, 1.0, 1.0]
+
+
+def test_a_verification_the_cross_blur_focus_contradicts_does_not_pass(monkeypatch):
+    """A misled verification 'passes' an estimate 0.35 dpt off (1.7 px) that the sharpness order
+    (disabled here) does not rule out: the three frames' sure cross-blur focus lies elsewhere, so
+    the verification does not pass and the cross-blur focus is the 3-frame estimate, in focus.
+    Without the cross-blur focus the misled pass is declared out of focus."""
+    wrong = 1.0 / (1.0 / TRUE_DEPTH - 0.35)
+    monkeypatch.setattr(declaration, "verify_focus", _misled(0.0, passed=True))
+    monkeypatch.setattr(declaration, "sharpness_bracket", lambda frames, roi=None: (-math.inf, math.inf))
+    kw = dict(fallback=False, refine_steps=0)
+    res = drive(DFDController(CAM, cross_blur=False, **kw), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
+    assert res.evidence == "verification" and _blur_px(TRUE_DEPTH, res.power_dpt) > 1.5  # what the check prevents
+    res = drive(DFDController(CAM, **kw), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
+    assert res.verified is False and res.evidence == "refined" and res.frames == 3 and res.cross_blur_measurements == 1
+    assert _blur_px(TRUE_DEPTH, res.power_dpt) < 0.3

@@ -24,6 +24,8 @@ Focus is declared only on the controller's own evidence (:mod:`tdfd.autofocus.ev
   :meth:`FocusDeclaration._not_confirmed` hands over to the contrast search (or ends
   ``"unconfirmed"``).
 
+A verification does not pass where the three frames' cross-blur focus is sure and lies
+farther than the tolerance from the lens's power (it then is the three-frame estimate).
 Neither a verification nor a three-frame estimate is declared at a power the frames'
 sharpness order rules out (:func:`~tdfd.autofocus.sharpness_order.sharpness_bracket`: it
 holds whatever the PSF, where the relative blur's Gaussian model can be misled). Where the
@@ -51,7 +53,7 @@ from ..errors import InputError
 from .evidence import (FocusEstimate, FocusUncertainty, blur_px_per_dpt, combine_focus_error, pair_focus_interval,
                        verify_focus, working_powers_dpt)
 from .messages import Command, Frame, Observation, State
-from .cross_blur import cross_blur_focus
+from .cross_blur import CrossBlurFocus, cross_blur_focus
 from .sharpness_order import sharpness_bracket
 from .roi import Roi
 
@@ -108,6 +110,9 @@ class FocusDeclaration:
         references = [(f1.image, f1.power_dpt), (f2.image, f2.power_dpt)]
         tol = self.verify_tolerance_px / blur_px_per_dpt(self.camera)
         lo_w, hi_w = working_powers_dpt(self.camera)  # a goal or a step must focus a target of the range
+        lo_p, hi_p = lo_w, hi_w
+        if self.power_limits_dpt is not None:
+            lo_p, hi_p = max(lo_p, self.power_limits_dpt[0]), min(hi_p, self.power_limits_dpt[1])
         for step in range(self.refine_steps + 1):
             self.state = State.VERIFY
             fv, _ = yield from self._capture("verify", light=self._verify_light())
@@ -123,6 +128,13 @@ class FocusDeclaration:
                 check = replace(check, passed=False, consistent=False,
                                 reason=f"the frames' sharpness order puts focus at {lo_s:.3f}..{hi_s:.3f} dpt")
                 log.info("verify %d: %s", step + 1, check.reason)
+            cb = None
+            if self.cross_blur and (check.passed or (step == 0 and self.combine_gate > 0)):
+                cb = self._cross_blur(references, roi, (lo_s, hi_s), tol, (lo_p, hi_p))
+                if check.passed and cb[1] and abs(cb[0].power_dpt - power) > tol:  # a sure focus elsewhere
+                    check = replace(check, passed=False, reason=f"the frames' cross-blur focus is "
+                                                                f"{cb[0].power_dpt:.3f} dpt")
+                    log.info("verify %d: %s", step + 1, check.reason)
             if check.passed:
                 res.verified = True
                 self._declare(fv.t_ready_s, "verification")
@@ -144,15 +156,11 @@ class FocusDeclaration:
                         log.info("three-frame estimate %.3f dpt: the frames' sharpness order puts focus at %.3f..%.3f dpt",
                                  goal, lo_s, hi_s)
                         est = goal = None
-                lo_p, hi_p = lo_w, hi_w
-                if self.power_limits_dpt is not None:
-                    lo_p, hi_p = max(lo_p, self.power_limits_dpt[0]), min(hi_p, self.power_limits_dpt[1])
                 ok = est is not None and goal is not None and self.refine_z * est.sigma_dpt <= tol and lo_p <= goal <= hi_p
                 source = ("the verification frame's alone" if est is None or math.isnan(est.discrepancy)
                           else f"{est.discrepancy:.1f} sigma between model and verification")
-                if self.cross_blur:
-                    goal, ok, est, source = self._cross_blur_step(references, roi, (lo_s, hi_s), power, goal, ok, est,
-                                                                  tol, (lo_p, hi_p), source)
+                if cb is not None:
+                    goal, ok, est, source = self._cross_blur_step(cb, power, goal, ok, est, tol, source)
                 if ok and anchored and abs(goal - target) > tol:
                     # the pair's focus and the three frames' disagree: one of them is wrong, a further step
                     log.info("three-frame estimate %.3f dpt: the pair's own cross-blur focus %.3f dpt disagrees",
@@ -188,16 +196,13 @@ class FocusDeclaration:
             res.history.append((ack.ready_s, power, None))
         return (yield from self._not_confirmed(f"verification failed: {check.reason}", power, (f1, f2)))
 
-    def _cross_blur_step(self, references: list, roi: Roi, order: tuple[float, float], power: float,
-                         goal: float | None, ok: bool, est: FocusEstimate | None, tol: float,
-                         limits: tuple[float, float], source: str
-                         ) -> tuple[float | None, bool, FocusEstimate | None, str]:
+    def _cross_blur(self, references: list, roi: Roi, order: tuple[float, float], tol: float,
+                    limits: tuple[float, float]) -> tuple[CrossBlurFocus, bool]:
         """The cross-blur focus of all frames so far (:func:`~tdfd.autofocus.cross_blur.cross_blur_focus`,
-        a Gaussian or a disk PSF): where it is sure (not at its span's edge, inside the sharpness
-        order's bracket ``order`` and the working powers, and the other family agrees within ``tol`` or fits
-        ``cross_blur_family_ratio`` x worse) it is the three-frame estimate; where it is not, a
-        relative-blur three-frame estimate ``goal`` stands only within ``tol`` of its focus.
-        Returns ``(goal, ok, est, source)``."""
+        a Gaussian or a disk PSF) and whether it is sure: not at its span's edge, inside the
+        sharpness order's bracket ``order`` and the powers ``limits``, a cost curve with a contrast of
+        at least ``cross_blur_min_contrast``, and the other family within ``tol`` or fitting
+        ``cross_blur_family_ratio`` x worse."""
         self.result.cross_blur_measurements += 1
         cb = cross_blur_focus(references, self.camera, roi)
         lo_s, hi_s = order
@@ -207,6 +212,16 @@ class FocusDeclaration:
         sure = (not cb.at_edge and lo_s <= cb.power_dpt <= hi_s and limits[0] <= cb.power_dpt <= limits[1]
                 and cb.contrast >= self.cross_blur_min_contrast
                 and (abs(cb.other_power_dpt - cb.power_dpt) <= tol or cb.other_cost_ratio >= self.cross_blur_family_ratio))
+        return cb, sure
+
+    @staticmethod
+    def _cross_blur_step(cross: tuple[CrossBlurFocus, bool], power: float, goal: float | None, ok: bool,
+                         est: FocusEstimate | None, tol: float, source: str
+                         ) -> tuple[float | None, bool, FocusEstimate | None, str]:
+        """A sure cross-blur focus ``cross`` (:meth:`_cross_blur`) is the three-frame estimate; an
+        unsure one lets a relative-blur three-frame estimate ``goal`` stand only within ``tol`` of its
+        focus. Returns ``(goal, ok, est, source)``."""
+        cb, sure = cross
         if sure:
             return cb.power_dpt, True, FocusEstimate(power - cb.power_dpt, 0.0, math.nan), f"cross-blur, {cb.shape} PSF"
         if ok and goal is not None and abs(goal - cb.power_dpt) > tol:

@@ -158,7 +158,8 @@ class DFDController(FocusDeclaration, StateMachine):
         cross_blur, cross_blur_family_ratio, cross_blur_min_contrast: after a failed verification
             the three frames' cross-blur focus is the three-frame estimate where the Gaussian and
             disk fits agree or the other fits this many times worse, and its cost curve's
-            contrast is at least the minimum; it vetoes one it contradicts (module
+            contrast is at least the minimum; it vetoes a verification or a relative-blur
+            three-frame estimate it contradicts (module
             :mod:`~tdfd.autofocus.declaration`, which also uses the pair's own cross-blur focus).
     """
 
