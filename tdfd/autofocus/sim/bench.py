@@ -4,21 +4,19 @@ r"""The simulated autofocus bench: emulated lens on a real pty, virtual camera, 
 
 Everything a trial touches is the real product code except the physics:
 
-* **Lens**: the Lens Driver 4 emulator (:class:`tdfd.driver.EmulatorServer`) on a real
-  pseudo-terminal, driven through the real :class:`tdfd.driver.OptotuneLens` driver. The
-  emulator's clock is the bench's :class:`~tdfd.autofocus.sim.clock.SimClock`, so its first-order settling
-  (1 % after ``settling_time_s``, default 15 ms) runs on simulated time. Serial traffic
-  costs simulated time: 10 bits per byte at 115200 baud, each way; a read timeout costs
-  the driver's timeout. After every set-point the bench reads the set-point back
-  (``PrDA``), because ``PwDA`` has no reply of its own: a lost command is caught there.
+* **Lens**: the Lens Driver 4 emulator (:class:`tdfd.driver.EmulatorServer`) on a real pseudo-terminal,
+  driven through the real :class:`tdfd.driver.OptotuneLens` driver. The emulator's clock is the
+  bench's :class:`~tdfd.autofocus.sim.clock.SimClock`, so its first-order settling (1 % after
+  ``settling_time_s``, default 15 ms) runs on simulated time. Serial traffic costs simulated time:
+  10 bits per byte at 115200 baud, each way; a read timeout costs the driver's timeout. After every
+  set-point the bench reads it back (``PrDA``), as ``PwDA`` has no reply: a lost command is caught there.
 * **Camera** (:class:`~tdfd.autofocus.sim.camera.VirtualCamera`): renders the scene with the one renderer
-  (:func:`tdfd.optics.render_at_power`) at the lens's *optical* power during the
-  exposure (sampled at its start, middle and end and averaged when the lens is still
-  moving, so settling transients show), adds sensor noise, and delivers the frame
-  ``readout_s`` after the exposure ends. Timing (:class:`~tdfd.autofocus.sim.timing.CameraTiming`): at most one
-  exposure start per frame period (60 fps); ``trigger="hardware"`` starts the exposure
-  as soon as the lens is settled (a triggered machine-vision camera),
-  ``trigger="free"`` only on the free-running frame boundaries.
+  (:func:`tdfd.optics.render_at_power`) at the lens's *optical* power during the exposure (sampled
+  at its start, middle and end and averaged when the lens is still moving, so settling transients
+  show), adds sensor noise, and delivers the frame ``readout_s`` after the exposure ends. Timing
+  (:class:`~tdfd.autofocus.sim.timing.CameraTiming`): at most one exposure start per frame period
+  (60 fps); ``trigger="hardware"`` starts the exposure as soon as the lens is settled (a triggered
+  machine-vision camera), ``trigger="free"`` only on the free-running frame boundaries.
 * **Compute**: the depth estimator's wall time as measured on this machine
   (``compute_s="measured"``) or a fixed, documented time per estimate.
 * **Scene** (:class:`~tdfd.autofocus.sim.scene.Scene`): a procedural texture on a fronto-parallel plane at the
@@ -26,8 +24,9 @@ Everything a trial touches is the real product code except the physics:
   at the target distance.
 
 Simulated time is charged for: serial bytes, settling waits, frame boundaries, exposure,
-read-out and the estimator. It is not charged for the controller's own arithmetic and
-the sharpness measure (well under 1 ms, overlapping the lens settling).
+read-out, the estimator and the controller's evidence (each relative-blur measurement and
+cross-blur search, at measured wall times); not for the rest of the controller's arithmetic
+and the sharpness measure (well under 1 ms, overlapping the lens settling).
 
 Example::
 
@@ -72,8 +71,7 @@ __all__ = ["SimBench", "DEFAULT_READOUT_HW"]
 
 log = logging.getLogger(__name__)
 
-#: default sensor read-out window (AOI) of the virtual camera, ``(H, W)`` pixels, centred
-#: on the 1200 x 1600 sensor of the reference camera.
+#: default sensor read-out window (AOI) of the virtual camera, ``(H, W)`` px, centred on the reference sensor
 DEFAULT_READOUT_HW = (256, 320)
 
 
