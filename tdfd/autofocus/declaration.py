@@ -128,12 +128,12 @@ class FocusDeclaration:
                 check = replace(check, passed=False, consistent=False,
                                 reason=f"the frames' sharpness order puts focus at {lo_s:.3f}..{hi_s:.3f} dpt")
                 log.info("verify %d: %s", step + 1, check.reason)
-            cb = None
+            cross = None  # the frames' cross-blur focus and whether it is sure
             if self.cross_blur and (check.passed or (step == 0 and self.combine_gate > 0)):
-                cb = self._cross_blur(references, roi, (lo_s, hi_s), tol, (lo_p, hi_p))
-                if check.passed and cb[1] and abs(cb[0].power_dpt - power) > tol:  # a sure focus elsewhere
-                    check = replace(check, passed=False, reason=f"the frames' cross-blur focus is "
-                                                                f"{cb[0].power_dpt:.3f} dpt")
+                cross = self._cross_blur(references, roi, (lo_s, hi_s), tol, (lo_p, hi_p))
+                focus, sure = cross
+                if check.passed and sure and abs(focus.power_dpt - power) > tol:  # a sure focus elsewhere
+                    check = replace(check, passed=False, reason=f"the frames' cross-blur focus is {focus.power_dpt:.3f} dpt")
                     log.info("verify %d: %s", step + 1, check.reason)
             if check.passed:
                 res.verified = True
@@ -159,8 +159,8 @@ class FocusDeclaration:
                 ok = est is not None and goal is not None and self.refine_z * est.sigma_dpt <= tol and lo_p <= goal <= hi_p
                 source = ("the verification frame's alone" if est is None or math.isnan(est.discrepancy)
                           else f"{est.discrepancy:.1f} sigma between model and verification")
-                if cb is not None:
-                    goal, ok, est, source = self._cross_blur_step(cb, power, goal, ok, est, tol, source)
+                if cross is not None:
+                    goal, ok, est, source = self._cross_blur_step(cross, power, goal, ok, est, tol, source)
                 if ok and anchored and abs(goal - target) > tol:
                     # the pair's focus and the three frames' disagree: one of them is wrong, a further step
                     log.info("three-frame estimate %.3f dpt: the pair's own cross-blur focus %.3f dpt disagrees",
