@@ -343,3 +343,24 @@ def test_a_verification_the_cross_blur_focus_contradicts_does_not_pass(monkeypat
     res = drive(DFDController(CAM, **kw), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
     assert res.verified is False and res.evidence == "refined" and res.frames == 3 and res.cross_blur_measurements == 1
     assert _blur_px(TRUE_DEPTH, res.power_dpt) < 0.3
+
+
+def test_a_clear_disk_fit_outweighs_the_sharpness_order(monkeypatch):
+    """A disk's MTF has zeros and reversals, so on a periodic texture a blurrier frame can look
+    sharper and the sharpness order can exclude the true focus. A cross-blur focus that a disk
+    fits 1.5x better than any Gaussian is sure outside that order (declared, in focus); the same
+    focus fitted as a Gaussian, or a disk fit less clear, is not (nothing declared)."""
+    from tdfd.autofocus.cross_blur import CrossBlurFocus
+
+    truth = CAM.in_focus_power_dpt(TRUE_DEPTH)
+    wrong = 1.0 / (1.0 / TRUE_DEPTH - 0.6)
+    monkeypatch.setattr(declaration, "verify_focus", _misled(+0.3, passed=False))
+    monkeypatch.setattr(declaration, "sharpness_bracket", lambda frames, roi=None: (truth + 0.3, truth + 0.9))
+    kw = dict(fallback=False, refine_steps=0, refine_max_uncertainty_px=0.0)
+    for shape, ratio, declared in (("pillbox", 2.0, True), ("gaussian", 2.0, False), ("pillbox", 1.2, False)):
+        focus = CrossBlurFocus(truth, shape, False, 1.0, other_power_dpt=truth + 0.5, other_cost_ratio=ratio, contrast=5.0)
+        monkeypatch.setattr(declaration, "cross_blur_focus", lambda *a, focus=focus, **k: focus)
+        res = drive(DFDController(CAM, **kw), FakePlant(TRUE_DEPTH, scripted=(wrong, 0.05)))
+        assert (res.evidence == "refined") == declared, (shape, ratio)
+        if declared:
+            assert _blur_px(TRUE_DEPTH, res.power_dpt) < 0.1

@@ -21,7 +21,7 @@ Layers, bottom to top; a module imports only from its own layer or the ones belo
      range scaled to the camera's blur) and :mod:`~tdfd.autofocus.cross_blur` (the
      in-focus power and PSF family, Gaussian or disk, from all frames of a run), bounded by
      :mod:`~tdfd.autofocus.sharpness_order` (the in-focus powers that the frames' sharpness
-     order allows, whatever the PSF).
+     order allows, with no blur model).
 
 2. Policies
 

@@ -27,8 +27,11 @@ Focus is declared only on the controller's own evidence (:mod:`tdfd.autofocus.ev
 A verification does not pass where the three frames' cross-blur focus is sure and lies
 farther than the tolerance from the lens's power (it then is the three-frame estimate).
 Neither a verification nor a three-frame estimate is declared at a power the frames'
-sharpness order rules out (:func:`~tdfd.autofocus.sharpness_order.sharpness_bracket`: it
-holds whatever the PSF, where the relative blur's Gaussian model can be misled). Where the
+sharpness order rules out (:func:`~tdfd.autofocus.sharpness_order.sharpness_bracket`: no
+blur model, so it holds where the relative blur's Gaussian model is misled), except a
+cross-blur focus that a disk fits clearly better than any Gaussian (a disk's MTF reversals
+on a periodic texture can make a blurrier frame look sharper and the order exclude the
+truth). Where the
 model has no opinion on a textured ROI, :meth:`FocusDeclaration._pair_estimate` moves to
 the DFD pair's own model-free in-focus power (its relative blur's, else its cross-blur
 focus) and the same steps follow without the model; a three-frame estimate that follows the
@@ -209,9 +212,12 @@ class FocusDeclaration:
         log.info("cross-blur focus %.3f dpt (%s, contrast %.3f; the other family %.3f dpt, %.2fx the cost; edge %s), "
                  "sharpness order %.3f..%.3f dpt", cb.power_dpt, cb.shape, cb.contrast, cb.other_power_dpt,
                  cb.other_cost_ratio, cb.at_edge, lo_s, hi_s)
-        sure = (not cb.at_edge and lo_s <= cb.power_dpt <= hi_s and limits[0] <= cb.power_dpt <= limits[1]
-                and cb.contrast >= self.cross_blur_min_contrast
-                and (abs(cb.other_power_dpt - cb.power_dpt) <= tol or cb.other_cost_ratio >= self.cross_blur_family_ratio))
+        clear_disk = cb.shape == "pillbox" and cb.other_cost_ratio >= self.cross_blur_family_ratio
+        sure = (not cb.at_edge and limits[0] <= cb.power_dpt <= limits[1] and cb.contrast >= self.cross_blur_min_contrast
+                and (abs(cb.other_power_dpt - cb.power_dpt) <= tol or cb.other_cost_ratio >= self.cross_blur_family_ratio)
+                # a disk's MTF has zeros and reversals: on a periodic texture a blurrier frame can look
+                # sharper, so the sharpness order is no evidence against a clear disk fit
+                and (lo_s <= cb.power_dpt <= hi_s or clear_disk))
         return cb, sure
 
     @staticmethod

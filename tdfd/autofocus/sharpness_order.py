@@ -1,4 +1,4 @@
-r"""The in-focus powers that the sharpness order of a run's frames allows, whatever the PSF.
+r"""The in-focus powers that the sharpness order of a run's frames allows, with no blur model.
 
 A defocus PSF's MTF falls as the defocus grows, so of two frames of one scene at powers
 ``P_a`` and ``P_b`` the one nearer the in-focus power ``P*`` is the sharper (within the
@@ -8,7 +8,11 @@ the two powers' midpoint. Each such comparison is a half-line; :func:`sharpness_
 intersects them. No blur model is involved, so the bracket holds where the relative blur's
 Gaussian model misleads: a periodic or band-limited texture through a disk PSF can make the
 relative blur of the DFD pair and of a verification frame agree on a power a dioptre away
-from focus, on the wrong side of a frame that is visibly sharper.
+from focus, on the wrong side of a frame that is visibly sharper. Its one assumption, the
+first MTF lobe, fails for a disk PSF on a periodic texture past the MTF's first zero, where a
+blurrier frame can look sharper (contrast reversal): on the reliability benchmark a bracket
+then excluded a true focus that the cross-blur focus, clearly a disk, had found
+(:mod:`~tdfd.autofocus.declaration` lets such a fit stand outside the bracket).
 
 Example:
     >>> import numpy as np
