@@ -239,9 +239,11 @@ class FocusDeclaration:
                        ) -> Generator[Command, Observation, tuple[Frame, Frame] | None | bool]:
         """The model has no opinion on a textured ROI (``reason``): the lens moves to the
         in-focus power the DFD pair's own relative blur gives (the centre of
-        :func:`~tdfd.autofocus.evidence.pair_focus_interval`, no model) and verification
-        frames decide, the model taking no part (then as :meth:`_declare_or_verify`). Returns
-        ``False`` without a move when the pair gives no power within the working powers (the
+        :func:`~tdfd.autofocus.evidence.pair_focus_interval`, no model), else to the pair's own
+        cross-blur focus (not at its span's edge, with a cost contrast of at least
+        ``cross_blur_min_contrast``), and verification frames decide, the model taking no part
+        (then as :meth:`_declare_or_verify`, ``anchored`` after a cross-blur focus). Returns
+        ``False`` without a move when neither gives a power within the working powers (the
         caller searches by contrast)."""
         res = self.result
         lo_w, hi_w = working_powers_dpt(self.camera)

@@ -243,8 +243,8 @@ class AFResult:
             without the model (``None`` if not checked).
         blur_measurements: relative-blur measurements the evidence took (each about 10 ms of
             CPU on the ROI; the simulated bench charges them to the time to focus).
-        cross_blur_measurements: cross-blur focus searches the evidence took (about 100 ms
-            each; charged likewise).
+        cross_blur_measurements: cross-blur focus searches the evidence took (about 25-35 ms
+            each on the bench's ROI; charged likewise).
         refocus_count: DFD cycles run (continuous mode counts every re-estimate).
         history: ``(t_s, power_dpt, depth_m)`` of every focus decision (continuous mode).
     """
