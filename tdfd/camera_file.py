@@ -22,6 +22,13 @@ A camera file holds the ``tdfd.camera`` object of CONTRACT.md section 2 (SI unit
 * ``ecvfl_offset_dpt`` (dpt): only in files describing a *simulated* true camera
   (``tdfd capture --sim``): the lens's real power is the commanded one plus this offset.
   A calibrated camera absorbs the offset into ``fixed_focal_length_m`` instead.
+* ``psf_family``: the lens's defocus PSF family, ``"gaussian"`` or ``"pillbox"`` (a uniform
+  disk), measured by ``tdfd calibrate`` from a focus sweep (:mod:`tdfd.calibration.psf_family`)
+  when the captures decide it; absent when unknown. ``tdfd autofocus --psf-family CAM.json``
+  hands it to the DFD controller, which then fits that family only.
+* ``psf_sigma_scale``: that family's RMS blur per dioptre over the one ``mu_px_per_m`` gives
+  (measured with the family; 1 when absent): the calibrated ``mu`` is what the Gaussian
+  relative blur measures, which for a disk lens is about 0.8x its disk's RMS radius.
 * ``calibration``: provenance written by ``tdfd calibrate`` (route, inputs, residuals).
 
 Other keys are kept in :attr:`CameraFile.extra` and ignored.
@@ -49,10 +56,12 @@ from .errors import CameraError
 logger = logging.getLogger(__name__)
 _WARNED: set = set()  # camera files already warned about (resolve_camera), once per process
 
-__all__ = ["CameraFile", "load_camera_file", "resolve_camera", "resolve_camera_file", "EXTRA_KEYS"]
+__all__ = ["CameraFile", "load_camera_file", "resolve_camera", "resolve_camera_file", "EXTRA_KEYS", "PSF_FAMILY_VALUES"]
 
 #: keys a camera file may add to the ``tdfd.camera`` object.
-EXTRA_KEYS = ("magnification_per_dpt", "ecvfl_offset_dpt", "calibration")
+EXTRA_KEYS = ("magnification_per_dpt", "ecvfl_offset_dpt", "calibration", "psf_family", "psf_sigma_scale")
+#: the values ``psf_family`` may take
+PSF_FAMILY_VALUES = ("gaussian", "pillbox")
 
 
 def _number(data: dict, key: str, source: str) -> float:
@@ -72,6 +81,8 @@ class CameraFile:
         ecvfl_offset_dpt: real minus commanded ECVFL power (simulated true cameras only).
         calibration: provenance dictionary, or ``None``.
         extra: other keys, kept and unused.
+        psf_family: the lens's PSF family (``"gaussian"``, ``"pillbox"``), or ``None`` when unknown.
+        psf_sigma_scale: the family's RMS blur per dioptre over the camera's (``mu``'s).
     """
 
     camera: Camera
@@ -79,6 +90,14 @@ class CameraFile:
     ecvfl_offset_dpt: float = 0.0
     calibration: dict[str, Any] | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    psf_family: str | None = None
+    psf_sigma_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.psf_family not in (None, *PSF_FAMILY_VALUES):
+            raise CameraError(f"psf_family must be one of {PSF_FAMILY_VALUES} (or absent), got {self.psf_family!r}")
+        if not 0.2 <= self.psf_sigma_scale <= 5.0:
+            raise CameraError(f"psf_sigma_scale {self.psf_sigma_scale} is implausible (0.2 to 5 expected)")
 
     def scale_at(self, power_dpt: float) -> float:
         """Relative image scale ``1 + m P`` at ECVFL power ``P``."""
@@ -90,6 +109,9 @@ class CameraFile:
         out["magnification_per_dpt"] = self.magnification_per_dpt
         if self.ecvfl_offset_dpt:
             out["ecvfl_offset_dpt"] = self.ecvfl_offset_dpt
+        if self.psf_family is not None:
+            out["psf_family"] = self.psf_family
+            out["psf_sigma_scale"] = self.psf_sigma_scale
         if self.calibration is not None:
             out["calibration"] = self.calibration
         return out
@@ -113,10 +135,21 @@ class CameraFile:
         if abs(m) >= 0.1:
             raise CameraError(f"{source}: magnification_per_dpt {m} is implausible (|m| < 0.1 per dioptre expected)")
         cal = data.get("calibration")
+        family = data.get("psf_family")
+        if family not in (None, *PSF_FAMILY_VALUES):
+            raise CameraError(f"{source}: psf_family must be one of {PSF_FAMILY_VALUES} (or absent), got {family!r}")
         known = set(EXTRA_KEYS) | set(cam.to_dict()) | {"name", "sensor_distances_m", "apertures_m"}
+        try:
+            return cls._checked(data, source, cam, m, cal, family, known)
+        except CameraError as exc:
+            raise CameraError(f"{source}: {exc}") from exc
+
+    @classmethod
+    def _checked(cls, data: dict, source: str, cam: Camera, m: float, cal: Any, family: Any, known: set) -> "CameraFile":
         return cls(camera=cam, magnification_per_dpt=m, ecvfl_offset_dpt=_number(data, "ecvfl_offset_dpt", source),
                    calibration=cal if isinstance(cal, dict) else None,
-                   extra={k: v for k, v in data.items() if k not in known})
+                   extra={k: v for k, v in data.items() if k not in known}, psf_family=family,
+                   psf_sigma_scale=_number(data, "psf_sigma_scale", source) if "psf_sigma_scale" in data else 1.0)
 
 
 def load_camera_file(path: str | os.PathLike) -> CameraFile:

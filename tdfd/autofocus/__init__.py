@@ -29,7 +29,9 @@ Layers, bottom to top; a module imports only from its own layer or the ones belo
    * :mod:`~tdfd.autofocus.dfd`: :class:`DFDController` (the DFD step: pair, estimate,
      move; falls back to the contrast search), with its declaration steps in
      :mod:`~tdfd.autofocus.declaration` (focus declared only on its own evidence: the
-     estimate's uncertainty, a verification frame, the three-frame estimate).
+     estimate's uncertainty, a verification frame, the three-frame estimate), and its
+     contrast-detect fall-back in :mod:`~tdfd.autofocus.fallback` (a peak the scan frames'
+     cross-blur focus contradicts is not declared, with the PSF family known).
    * :mod:`~tdfd.autofocus.assist`: ``AssistedDFDController``, DFD that lights the pair of a
      texture-less target with an assist light (:mod:`tdfd.light`), pooling the lit tiles
      (:mod:`~tdfd.autofocus.lit_tiles`).
@@ -49,7 +51,9 @@ Layers, bottom to top; a module imports only from its own layer or the ones belo
 
    * :mod:`~tdfd.autofocus.report`: the autofocus report of CONTRACT.md section 3.
    * :mod:`~tdfd.autofocus.cli`: ``tdfd autofocus``; :mod:`~tdfd.autofocus.light_cli`: its
-     assist-light options.
+     assist-light options; :mod:`~tdfd.autofocus.psf_family_option`: its ``--psf-family`` (the
+     lens's PSF family the DFD controller is told: given, a calibrated camera file's, or
+     measured on the simulated bench).
 
 Heavy dependencies (torch, onnxruntime, OpenCV) are imported only where used.
 """

@@ -28,6 +28,7 @@ from ..camera import Camera
 from ..driver import Faults
 from ..errors import InputError
 from .estimators import default_model_path, load_estimator
+from .psf_family_option import add_psf_family_argument, resolve_psf_family
 from .hardware import run_hardware
 from .light_cli import (
     add_light_arguments,
@@ -102,6 +103,7 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     what.add_argument("--max-uncertainty", type=float, default=0.25,
                       help="DFD uncertainty (px of blur) up to which focus is declared without a verification "
                            "frame (default 0.25)")
+    add_psf_family_argument(what)
     what.add_argument("--continuous", action="store_true", help="keep re-estimating as the target moves")
     what.add_argument("--duration", type=float, default=2.0, help="continuous run length in seconds (default 2)")
     what.add_argument("--min-confidence", type=float, default=None,
@@ -217,6 +219,9 @@ def _run_sim(args: argparse.Namespace) -> int:
                   "max_uncertainty_px": args.max_uncertainty}
     if args.min_confidence is not None:
         controller["min_confidence"] = args.min_confidence
+    optics = est.camera if est is not None else Camera.preset("reference")
+    controller["psf_family"], controller["psf_sigma_scale"] = resolve_psf_family(args.psf_family, sim_camera=optics,
+                                                                                 sim_psf=_psf(args.psf))
     light, light_controller = sim_light(args, est.camera if est is not None else Camera.preset("reference"))
     controller.update(light_controller)
     bench = SimBench(light=light, light_limits=light_limits(args), estimator=est, readout_hw=readout, roi=roi, timing=timing,
@@ -232,7 +237,8 @@ def _run_sim(args: argparse.Namespace) -> int:
         print(f"bench: lens emulator on {bench.lens.server.port} via the OptotuneLens driver, range "
               f"{bench.lens.power_limits_dpt[0]:.2f}..{bench.lens.power_limits_dpt[1]:.2f} dpt, settling {args.settle_ms:g} ms; "
               f"camera {args.fps:g} fps ({args.trigger} trigger), exposure {args.exposure_ms:g} ms, read-out "
-              f"{args.readout_ms:g} ms, window {readout[0]}x{readout[1]} px, ROI {bench.roi}; compute {charge_txt}")
+              f"{args.readout_ms:g} ms, window {readout[0]}x{readout[1]} px, ROI {bench.roi}; compute {charge_txt}; "
+              f"PSF {args.psf}, the controller told {controller['psf_family'] or 'no family'} (--psf-family {args.psf_family})")
         if args.faults:
             print(f"fault injection on the emulator: {args.faults}")
         if args.continuous:
@@ -319,6 +325,7 @@ def _run_hardware(args: argparse.Namespace) -> int:
     if method == "both":
         raise InputError("--method both is for the simulated bench")
     est = _estimator(args, method == "dfd")
+    family, scale = resolve_psf_family(args.psf_family)  # before the light and the lens: a bad value touches neither
     light = open_named_light(args)  # before the lens: a missing light port leaves the lens untouched
     on_term = sigterm_as_interrupt() if light is not None else contextlib.nullcontext()  # kill -> Ctrl-C's exit path
     try:
@@ -329,7 +336,8 @@ def _run_hardware(args: argparse.Namespace) -> int:
                                linearise=args.linearise, white_level=args.white_level,
                                min_confidence=args.min_confidence, max_uncertainty_px=args.max_uncertainty,
                                contrast={"strategy": args.contrast_strategy, "step_dpt": args.contrast_step},
-                               light=light, illumination=args.illumination, light_limits=light_limits(args))
+                               light=light, illumination=args.illumination, light_limits=light_limits(args),
+                               psf_family=family, psf_sigma_scale=scale)
     finally:
         if light is not None:
             light.close()

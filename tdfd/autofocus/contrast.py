@@ -133,6 +133,7 @@ class ContrastSearch:
         if self.fine_scan_px < 0:
             raise InputError(f"fine_scan_px must be >= 0, got {fine_scan_px}")
         self.samples: list[tuple[float, float]] = []  # (power_dpt, sharpness) in capture order
+        self.frames: list[tuple[np.ndarray, float]] = []  # (image, power_dpt) in capture order
 
     def _span(self, machine: StateMachine, span: tuple[float, float] | None = None) -> tuple[float, float]:
         """``span`` (default ``span_dpt``) within the lens's power limits."""
@@ -147,6 +148,7 @@ class ContrastSearch:
         roi = (self.roi or Roi.centre(frame.image.shape[-2:])).clip(frame.image.shape[-2:])
         s = sharpness(frame.image, roi, self.measure)
         self.samples.append((frame.power_dpt, s))
+        self.frames.append((frame.image, frame.power_dpt))
         return s
 
     def search(self, machine: StateMachine) -> Generator[Command, Observation, float]:
@@ -156,7 +158,7 @@ class ContrastSearch:
         returned power.
         """
         machine.state = State.CONTRAST
-        self.samples = []
+        self.samples, self.frames = [], []
         if self.strategy == "golden":
             return (yield from self._golden(machine))
         return (yield from self._scan(machine))

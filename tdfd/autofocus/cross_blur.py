@@ -47,9 +47,11 @@ from ..errors import InputError
 from .evidence import sigma_px_per_dpt, working_powers_dpt
 from .roi import Roi
 
-__all__ = ["CrossBlurFocus", "cross_blur_focus", "bessel_j1", "disk_otf"]
+__all__ = ["CrossBlurFocus", "cross_blur_focus", "bessel_j1", "disk_otf", "PSF_FAMILIES"]
 
-SHAPES = ("gaussian", "pillbox")
+#: the PSF families the search fits: a Gaussian and a uniform disk (pillbox) of the same RMS radius
+PSF_FAMILIES = ("gaussian", "pillbox")
+SHAPES = PSF_FAMILIES
 
 
 @dataclass(frozen=True)
@@ -69,6 +71,11 @@ class CrossBlurFocus:
             noise (a texture near the noise floor) give a flat cost: on the reliability
             benchmark's tuning seeds, five of the seven 3-frame minima over 1 px from focus
             had a contrast under 0.1.
+        runner_up_power_dpt, runner_up_ratio: the best other local minimum of this family's coarse
+            cost curve (at least two coarse steps from the best) and its cost over the best's, both
+            on the coarse grid (``nan``, ``inf`` without one). A periodic texture (one frequency)
+            is explained by several powers: a runner-up close to 1 says the frames do not single
+            the power out, whichever family is known.
     """
 
     power_dpt: float
@@ -78,6 +85,19 @@ class CrossBlurFocus:
     other_power_dpt: float = math.nan
     other_cost_ratio: float = math.inf
     contrast: float = math.nan
+    runner_up_power_dpt: float = math.nan
+    runner_up_ratio: float = math.inf
+
+
+def _runner_up(candidates: np.ndarray, costs: np.ndarray, best: int) -> tuple[float, float]:
+    """The lowest local minimum of ``costs`` at least two candidates from ``best``: ``(power, cost / best cost)``."""
+    n = len(costs)
+    minima = [i for i in range(n) if abs(i - best) >= 2
+              and (i == 0 or costs[i] <= costs[i - 1]) and (i == n - 1 or costs[i] <= costs[i + 1])]
+    if not minima:
+        return math.nan, math.inf
+    k = min(minima, key=lambda i: costs[i])
+    return float(candidates[k]), float(costs[k] / max(costs[best], 1e-300))
 
 
 def bessel_j1(x: np.ndarray) -> np.ndarray:
@@ -153,7 +173,7 @@ def _cost(power: list[np.ndarray], cross: dict[tuple[int, int], np.ndarray], off
 
 def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera, roi: Roi | None = None, *,
                      span_dpt: tuple[float, float] | None = None, shapes: Sequence[str] = SHAPES,
-                     coarse_dpt: float = 0.1, fine_dpt: float = 0.01) -> CrossBlurFocus:
+                     coarse_dpt: float = 0.1, fine_dpt: float = 0.01, sigma_scale: float = 1.0) -> CrossBlurFocus:
     """The in-focus power (and PSF family) that best explains the frames (module docstring).
 
     Args:
@@ -164,6 +184,9 @@ def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera,
         shapes: PSF families tried.
         coarse_dpt, fine_dpt: the search's coarse step over the span, then its fine step
             within one coarse step of the coarse minimum.
+        sigma_scale: the PSF's RMS blur per dioptre over the camera's ``M`` (1: the camera's
+            ``mu`` describes the PSF; a disk lens calibrated through the Gaussian relative blur
+            has a ``mu`` below its disk's, :mod:`tdfd.calibration.psf_family`).
 
     Raises:
         InputError: fewer than two frames at distinct powers, frames of different shapes,
@@ -173,8 +196,8 @@ def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera,
         raise InputError("cross_blur_focus needs at least two frames 0.02 dpt apart")
     if not set(shapes) <= set(SHAPES) or not shapes:
         raise InputError(f"shapes must be among {SHAPES}, got {tuple(shapes)}")
-    if not (coarse_dpt > 0 and fine_dpt > 0):
-        raise InputError("coarse_dpt and fine_dpt must be > 0")
+    if not (coarse_dpt > 0 and fine_dpt > 0 and sigma_scale > 0):
+        raise InputError("coarse_dpt, fine_dpt and sigma_scale must be > 0")
     crops = [np.asarray(im if roi is None else roi.crop(np.asarray(im)), dtype=np.float64) for im, _ in frames]
     if len({c.shape for c in crops}) != 1 or crops[0].ndim != 2 or min(crops[0].shape) < 16:
         raise InputError(f"frames must be (H, W) of one shape with an ROI of at least 16 px, got {[c.shape for c in crops]}")
@@ -187,7 +210,7 @@ def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera,
     f = np.sqrt(f2)
     powers = np.array([float(p) for _, p in frames])
     lo, hi = working_powers_dpt(camera) if span_dpt is None else sorted(float(v) for v in span_dpt)
-    m = sigma_px_per_dpt(camera)
+    m = sigma_px_per_dpt(camera) * float(sigma_scale)
     per_shape: list[CrossBlurFocus] = []
     for shape in shapes:
         coarse = np.arange(lo, hi + 1e-9, coarse_dpt)
@@ -196,8 +219,10 @@ def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera,
         fine = np.arange(max(lo, coarse[k] - coarse_dpt), min(hi, coarse[k] + coarse_dpt) + 1e-9, fine_dpt)
         fcosts = [_cost(power, cross, powers - c, m, shape, f2, f) for c in fine]
         kf = int(np.argmin(fcosts))
+        runner_power, runner_ratio = _runner_up(coarse, np.asarray(costs), k)
         per_shape.append(CrossBlurFocus(float(fine[kf]), shape, k in (0, len(coarse) - 1), fcosts[kf] / f2.size,
-                                        contrast=float(np.median(costs)) / max(fcosts[kf], 1e-300) - 1.0))
+                                        contrast=float(np.median(costs)) / max(fcosts[kf], 1e-300) - 1.0,
+                                        runner_up_power_dpt=runner_power, runner_up_ratio=runner_ratio))
     best, *others = sorted(per_shape, key=lambda c: c.cost)
     if not others:
         return best

@@ -21,7 +21,7 @@ Focus is declared only on the controller's own evidence (:mod:`tdfd.autofocus.ev
   there (a relative-blur estimate the cross-blur focus contradicts is not declared);
 * otherwise the lens moves by the measured error and verifies again (``refine_steps``),
   never to a power outside :func:`~tdfd.autofocus.evidence.working_powers_dpt`, then
-  :meth:`FocusDeclaration._not_confirmed` hands over to the contrast search (or ends
+  :meth:`~tdfd.autofocus.fallback.ContrastFallback._not_confirmed` hands over to the contrast search (or ends
   ``"unconfirmed"``).
 
 A verification does not pass where the three frames' cross-blur focus is sure and lies
@@ -37,10 +37,18 @@ the DFD pair's own model-free in-focus power (its relative blur's, else its cros
 focus) and the same steps follow without the model; a three-frame estimate that follows the
 pair's cross-blur focus must confirm it within the verification tolerance.
 
+Told the lens's PSF family (``psf_family``, ``psf_sigma_scale``: a calibrated camera file's),
+the cross-blur searches fit that family only; a cross-blur focus is then sure only as its cost
+curve's one clear minimum (:meth:`FocusDeclaration._unique`; a known disk's stands outside the
+sharpness order, as a clear disk fit does), any credible one (not at an edge,
+within the working powers, not flat) farther than the tolerance vetoes a verification pass,
+and through a disk the pair's check of a 2-frame declaration is its own disk cross-blur focus
+(:meth:`FocusDeclaration._pair_cross_blur_agrees`).
+
 The mixin reads the controller's thresholds (``max_uncertainty_px``, ``agree_px``,
 ``verify_tolerance_px``, ``verify_z``, ``shape_range``, ``combine_gate``, ``refine_z``,
 ``refine_max_uncertainty_px``, ``refine_steps``, ``verify``, ``fallback``, ``cross_blur``,
-``cross_blur_family_ratio``, ``cross_blur_min_contrast``) and uses the
+``cross_blur_family_ratio``, ``cross_blur_min_contrast``, ``psf_family``, ``psf_sigma_scale``) and uses the
 state machine's ``_capture`` / ``_set_power`` and the controller's ``_contrast`` and
 ``_verify_light``.
 """
@@ -56,7 +64,7 @@ from ..errors import InputError
 from .evidence import (FocusEstimate, FocusUncertainty, blur_px_per_dpt, combine_focus_error, pair_focus_interval,
                        verify_focus, working_powers_dpt)
 from .messages import Command, Frame, Observation, State
-from .cross_blur import CrossBlurFocus, cross_blur_focus
+from .cross_blur import PSF_FAMILIES, CrossBlurFocus, cross_blur_focus
 from .sharpness_order import sharpness_bracket
 from .roi import Roi
 
@@ -89,7 +97,10 @@ class FocusDeclaration:
                      target, near_p, far_p)
             confident = False
         slack = self.agree_px / blur_px_per_dpt(self.camera)
-        if confident:  # a second opinion: the pair's own relative blur must allow the model's power
+        if confident and self.psf_family == "pillbox":  # a second opinion: the pair's own disk cross-blur focus
+            res.pair_agrees = self._pair_cross_blur_agrees(f1, f2, roi, target, slack)
+            confident = res.pair_agrees
+        elif confident:  # a second opinion: the pair's own relative blur must allow the model's power
             try:
                 res.blur_measurements += 1
                 lo, hi = pair_focus_interval(f1.image, f1.power_dpt, f2.image, f2.power_dpt, self.camera, roi,
@@ -134,8 +145,11 @@ class FocusDeclaration:
             cross = None  # the frames' cross-blur focus and whether it is sure
             if self.cross_blur and (check.passed or (step == 0 and self.combine_gate > 0)):
                 cross = self._cross_blur(references, roi, (lo_s, hi_s), tol, (lo_p, hi_p))
-                focus, sure = cross
-                if check.passed and sure and abs(focus.power_dpt - power) > tol:  # a sure focus elsewhere
+                focus, sure, credible = cross
+                # a sure focus elsewhere; with the family known, any credible one (a periodic texture's
+                # frames may leave two powers, one of them the lens's: the verification cannot tell)
+                if (check.passed and (sure or (credible and self.psf_family is not None))
+                        and abs(focus.power_dpt - power) > tol):
                     check = replace(check, passed=False, reason=f"the frames' cross-blur focus is {focus.power_dpt:.3f} dpt")
                     log.info("verify %d: %s", step + 1, check.reason)
             if check.passed:
@@ -200,34 +214,38 @@ class FocusDeclaration:
         return (yield from self._not_confirmed(f"verification failed: {check.reason}", power, (f1, f2)))
 
     def _cross_blur(self, references: list, roi: Roi, order: tuple[float, float], tol: float,
-                    limits: tuple[float, float]) -> tuple[CrossBlurFocus, bool]:
+                    limits: tuple[float, float]) -> tuple[CrossBlurFocus, bool, bool]:
         """The cross-blur focus of all frames so far (:func:`~tdfd.autofocus.cross_blur.cross_blur_focus`,
         a Gaussian or a disk PSF) and whether it is sure: not at its span's edge, inside the
         sharpness order's bracket ``order`` and the powers ``limits``, a cost curve with a contrast of
-        at least ``cross_blur_min_contrast``, and the other family within ``tol`` or fitting
-        ``cross_blur_family_ratio`` x worse."""
+        at least ``cross_blur_min_contrast`` (so far: credible), the other family within ``tol`` or
+        fitting ``cross_blur_family_ratio`` x worse, and with the family known, no runner-up
+        elsewhere (:meth:`_unique`). Returns ``(focus, sure, credible)``."""
         self.result.cross_blur_measurements += 1
-        cb = cross_blur_focus(references, self.camera, roi)
+        cb = cross_blur_focus(references, self.camera, roi, shapes=self._psf_families(),
+                              sigma_scale=self.psf_sigma_scale)
         lo_s, hi_s = order
-        log.info("cross-blur focus %.3f dpt (%s, contrast %.3f; the other family %.3f dpt, %.2fx the cost; edge %s), "
-                 "sharpness order %.3f..%.3f dpt", cb.power_dpt, cb.shape, cb.contrast, cb.other_power_dpt,
-                 cb.other_cost_ratio, cb.at_edge, lo_s, hi_s)
+        log.info("cross-blur focus %.3f dpt (%s, contrast %.3f; the other family %.3f dpt, %.2fx the cost; runner-up "
+                 "%.3f dpt, %.2fx; edge %s), sharpness order %.3f..%.3f dpt", cb.power_dpt, cb.shape, cb.contrast,
+                 cb.other_power_dpt, cb.other_cost_ratio, cb.runner_up_power_dpt, cb.runner_up_ratio, cb.at_edge,
+                 lo_s, hi_s)
         clear_disk = cb.shape == "pillbox" and cb.other_cost_ratio >= self.cross_blur_family_ratio
-        sure = (not cb.at_edge and limits[0] <= cb.power_dpt <= limits[1] and cb.contrast >= self.cross_blur_min_contrast
+        credible = not cb.at_edge and limits[0] <= cb.power_dpt <= limits[1] and cb.contrast >= self.cross_blur_min_contrast
+        sure = (credible and self._unique(cb, tol)
                 and (abs(cb.other_power_dpt - cb.power_dpt) <= tol or cb.other_cost_ratio >= self.cross_blur_family_ratio)
                 # a disk's MTF has zeros and reversals: on a periodic texture a blurrier frame can look
                 # sharper, so the sharpness order is no evidence against a clear disk fit
                 and (lo_s <= cb.power_dpt <= hi_s or clear_disk))
-        return cb, sure
+        return cb, sure, credible
 
     @staticmethod
-    def _cross_blur_step(cross: tuple[CrossBlurFocus, bool], power: float, goal: float | None, ok: bool,
+    def _cross_blur_step(cross: tuple[CrossBlurFocus, bool, bool], power: float, goal: float | None, ok: bool,
                          est: FocusEstimate | None, tol: float, source: str
                          ) -> tuple[float | None, bool, FocusEstimate | None, str]:
         """A sure cross-blur focus ``cross`` (:meth:`_cross_blur`) is the three-frame estimate; an
         unsure one lets a relative-blur three-frame estimate ``goal`` stand only within ``tol`` of its
         focus. Returns ``(goal, ok, est, source)``."""
-        cb, sure = cross
+        cb, sure, _ = cross
         if sure:
             return cb.power_dpt, True, FocusEstimate(power - cb.power_dpt, 0.0, math.nan), f"cross-blur, {cb.shape} PSF"
         if ok and goal is not None and abs(goal - cb.power_dpt) > tol:
@@ -263,7 +281,8 @@ class FocusDeclaration:
             # are half the time over 1 px wrong on periodic textures; the three frames' one decides)
             res.cross_blur_measurements += 1
             try:
-                cb = cross_blur_focus([(f1.image, f1.power_dpt), (f2.image, f2.power_dpt)], self.camera, roi)
+                cb = cross_blur_focus([(f1.image, f1.power_dpt), (f2.image, f2.power_dpt)], self.camera, roi,
+                                      shapes=self._psf_families(), sigma_scale=self.psf_sigma_scale)
             except InputError as exc:
                 log.info("no cross-blur focus of the pair: %s", exc)
                 return False
@@ -284,26 +303,40 @@ class FocusDeclaration:
         return (yield from self._declare_or_verify(target, power, ack.ready_s, no_model, f1, f2, roi,
                                                    anchored=not math.isfinite(lo + hi)))
 
+    def _psf_families(self) -> tuple[str, ...]:
+        """The PSF families the cross-blur searches fit: the lens's, when the controller knows it."""
+        return PSF_FAMILIES if self.psf_family is None else (self.psf_family,)
+
+    def _unique(self, cb: CrossBlurFocus, tol: float) -> bool:
+        """With the PSF family known, a cross-blur focus must be the cost curve's only clear minimum:
+        its runner-up lies within ``tol`` or costs ``cross_blur_family_ratio`` x more. (Unknown, the
+        other family's fit plays that part: the family rule of :meth:`_cross_blur`.)"""
+        return (self.psf_family is None or abs(cb.runner_up_power_dpt - cb.power_dpt) <= tol
+                or cb.runner_up_ratio >= self.cross_blur_family_ratio)
+
+    def _pair_cross_blur_agrees(self, f1: Frame, f2: Frame, roi: Roi, target: float, slack: float) -> bool:
+        """The 2-frame check with a known disk PSF: the DFD pair's own cross-blur focus (that family
+        only, no model) is sure (not at its span's edge, a cost contrast of at least
+        ``cross_blur_min_contrast``, its curve's one clear minimum: :meth:`_unique`) and within
+        ``slack`` of the model's power ``target``. The
+        relative blur's Gaussian fit is no check here: on a periodic texture a disk's MTF
+        reversals mislead it and the model alike (docs/BENCHMARKS.md, reliability)."""
+        self.result.pair_cross_blur_checks += 1
+        try:
+            cb = cross_blur_focus([(f1.image, f1.power_dpt), (f2.image, f2.power_dpt)], self.camera, roi,
+                                  shapes=self._psf_families(), sigma_scale=self.psf_sigma_scale)
+        except InputError as exc:
+            log.info("no pair check: %s", exc)
+            return False
+        agrees = (not cb.at_edge and cb.contrast >= self.cross_blur_min_contrast and self._unique(cb, slack)
+                  and abs(cb.power_dpt - target) <= slack)
+        log.info("DFD pair's disk cross-blur focus %.3f dpt (contrast %.3f, runner-up %.3f dpt at %.2fx, edge %s); "
+                 "the model's %.3f dpt %s", cb.power_dpt, cb.contrast, cb.runner_up_power_dpt, cb.runner_up_ratio,
+                 cb.at_edge, target, "agrees" if agrees else "DISAGREES")
+        return agrees
+
     def _declare(self, t_s: float, evidence: str) -> None:
         """Focus is declared: the lens sits at ``result.power_dpt`` and ``evidence`` says why."""
         self.result.status = "focused"
         self.result.evidence = evidence
         self.result.t_focus_s = t_s
-
-    def _not_confirmed(self, reason: str, power: float, pair: tuple[Frame, Frame]
-                       ) -> Generator[Command, Observation, tuple[Frame, Frame] | None]:
-        """The DFD focus could not be confirmed: a contrast-detect search around it, or no declaration."""
-        res = self.result
-        prior = res.fallback_reason  # why the estimate came without the model (the pair's own), if it did
-        res.fallback_reason = f"{prior}; {reason}" if prior else reason
-        if not self.fallback:
-            log.warning("%s: focus not declared", reason)
-            res.status = "unconfirmed"
-            res.t_focus_s = None
-            return None
-        # around the estimate: a scan of the whole range did no better on the reliability benchmark
-        # (9 declared out of focus in 1000 against 8; both are the contrast search's false peaks on
-        # low-frequency textures) and costs more frames
-        log.warning("%s: contrast-detect AF decides around %.3f dpt", reason, power)
-        yield from self._contrast(power)
-        return None

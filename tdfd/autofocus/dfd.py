@@ -81,8 +81,9 @@ from ..camera import Camera, in_focus_power_dpt
 from ..errors import DTypeError, InputError
 from ..pair_check import pair_problem
 from .aggregate import DepthAggregate, aggregate_depth
-from .contrast import ContrastSearch
+from .cross_blur import PSF_FAMILIES
 from .declaration import FocusDeclaration
+from .fallback import ContrastFallback
 from .evidence import estimate_uncertainty
 from .machine import Abort, Gen, StateMachine
 from .messages import Command, Estimate, Estimation, EstimateFault, Frame, Observation, State
@@ -94,7 +95,7 @@ __all__ = ["DFDController"]
 log = logging.getLogger(__name__)
 
 
-class DFDController(FocusDeclaration, StateMachine):
+class DFDController(FocusDeclaration, ContrastFallback, StateMachine):
     """Single-shot (or continuous) depth-from-defocus autofocus.
 
     Args:
@@ -161,6 +162,12 @@ class DFDController(FocusDeclaration, StateMachine):
             contrast is at least the minimum; it vetoes a verification or a relative-blur
             three-frame estimate it contradicts (module
             :mod:`~tdfd.autofocus.declaration`, which also uses the pair's own cross-blur focus).
+        psf_family: the lens's PSF family when it is known (``"gaussian"`` or ``"pillbox"``, e.g.
+            a camera file's ``psf_family`` measured by ``tdfd calibrate``): the cross-blur
+            searches fit that family only, and with a disk the DFD pair's check of a 2-frame
+            declaration is its disk cross-blur focus. ``None`` (default): both are tried.
+        psf_sigma_scale: that family's RMS blur per dioptre over the camera's (a camera file's
+            ``psf_sigma_scale``; 1 without a family).
     """
 
     def __init__(self, camera: Camera, *, roi: Roi | None = None, settle_s: float = 0.015, verify: bool | str = "auto",
@@ -174,7 +181,8 @@ class DFDController(FocusDeclaration, StateMachine):
                  agree_px: float = 0.5, combine_gate: float = 2.0, refine_z: float = 2.5,
                  refine_max_uncertainty_px: float = 1.0, contrast_min_peak: float = 1.1,
                  pair_fallback: bool = True, pair_min_texture_snr: float = 3.0, cross_blur: bool = True,
-                 cross_blur_family_ratio: float = 1.5, cross_blur_min_contrast: float = 0.1) -> None:
+                 cross_blur_family_ratio: float = 1.5, cross_blur_min_contrast: float = 0.1,
+                 psf_family: str | None = None, psf_sigma_scale: float = 1.0) -> None:
         super().__init__(settle_s, lens_retries, capture_retries, power_limits_dpt)
         self.grid = None if grid is None else (int(grid[0]), int(grid[1]))
         if not 0 <= min_confidence <= 1:
@@ -203,6 +211,11 @@ class DFDController(FocusDeclaration, StateMachine):
         self.pair_fallback, self.pair_min_texture_snr = bool(pair_fallback), float(pair_min_texture_snr)
         self.cross_blur, self.cross_blur_family_ratio = bool(cross_blur), float(cross_blur_family_ratio)
         self.cross_blur_min_contrast = float(cross_blur_min_contrast)
+        if psf_family not in (None, *PSF_FAMILIES):
+            raise InputError(f"psf_family must be None or one of {PSF_FAMILIES}, got {psf_family!r}")
+        if not (0.2 <= psf_sigma_scale <= 5.0 and (psf_family is not None or psf_sigma_scale == 1.0)):
+            raise InputError(f"psf_sigma_scale must be in [0.2, 5] and 1 without a psf_family, got {psf_sigma_scale}")
+        self.psf_family, self.psf_sigma_scale = psf_family, float(psf_sigma_scale)
         self.min_texture_snr = float(min_texture_snr)
         self.contrast_kwargs = dict(contrast or {})
         self.continuous, self.refocus_drop = bool(continuous), float(refocus_drop)
@@ -345,33 +358,6 @@ class DFDController(FocusDeclaration, StateMachine):
         tiles it pooled (a policy above may pool other tiles)."""
         mask = roi_tile_mask(roi, obs.depth_m.shape, obs.tile, obs.stride, offset)
         return aggregate_depth(obs.depth_m, obs.confidence, mask), mask
-
-    def _contrast(self, centre_dpt: float | None) -> Gen:
-        self.state = State.CONTRAST
-        kwargs = dict(self.contrast_kwargs)
-        kwargs.setdefault("light", self._contrast_light())
-        if centre_dpt is not None:  # a local search around the DFD answer
-            kwargs.setdefault("span_dpt", (centre_dpt - 0.6, centre_dpt + 0.6))
-        search = ContrastSearch(self.camera, roi=self.roi, **kwargs)
-        power = yield from search.search(self)
-        power = self.check_power(power)
-        self.state = State.MOVE_FOCUS
-        ack = yield from self._set_power(power)
-        self.result.method = "contrast"
-        self.result.power_dpt = power
-        self.result.history.append((ack.ready_s, power, None))
-        values = [v for _, v in search.samples]
-        if values and not max(values) >= self.contrast_min_peak * min(values) > 0:
-            # a peak that hardly rises above the scan's least sharp frame is sensor noise, not focus
-            reason = (f"no contrast peak: the sharpest frame is {max(values) / max(min(values), 1e-300):.3f}x the "
-                      f"least sharp (below {self.contrast_min_peak:g}x)")
-            prior = self.result.fallback_reason
-            self.result.fallback_reason = f"{prior}; {reason}" if prior else reason
-            log.warning("%s: focus not declared", reason)
-            self.result.status = "unconfirmed"
-            self.result.t_focus_s = None
-            return
-        self._declare(ack.ready_s, "contrast")
 
     def _track(self, pair: tuple[Frame, Frame] | None) -> Gen:
         """Continuous mode: watch live frames at focus; re-run DFD when they blur or periodically."""

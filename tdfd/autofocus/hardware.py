@@ -237,7 +237,8 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
                  temperature_limits_c: tuple[float, float] = HARDWARE_TEMPERATURE_LIMITS_C,
                  contrast: dict | None = None, camera: Any | None = None, lens: Any | None = None,
                  min_confidence: float | None = None, max_uncertainty_px: float = 0.25, light: Any | None = None,
-                 illumination: str | None = None, light_limits: LightLimits = DEFAULT_LIMITS) -> AFResult:
+                 illumination: str | None = None, light_limits: LightLimits = DEFAULT_LIMITS,
+                 psf_family: str | None = None, psf_sigma_scale: float = 1.0) -> AFResult:
     """Autofocus once (or continuously) on real hardware.
 
     Args:
@@ -263,6 +264,8 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
         illumination: ``"none"`` keeps a named light off; any other value (or ``None``)
             lets DFD use it. Needs ``light``.
         light_limits: the light's on-time and duty caps.
+        psf_family, psf_sigma_scale: the lens's PSF family and its blur scale (a calibrated camera
+            file's), see :class:`~tdfd.autofocus.dfd.DFDController`; ``None``: unknown.
 
     Returns:
         The :class:`~tdfd.autofocus.messages.AFResult`; lens and camera faults end up in it
@@ -305,7 +308,8 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
             dfd_kwargs = dict(roi=roi, settle_s=settle_s, verify=verify, dry_run=dry_run, continuous=continuous,
                               power_limits_dpt=limits, contrast=contrast, grid=(estimator.tile, estimator.stride),
                               confidence_scale=suggested_confidence_scale(estimator),
-                              max_uncertainty_px=max_uncertainty_px,
+                              max_uncertainty_px=max_uncertainty_px, psf_family=psf_family,
+                              psf_sigma_scale=psf_sigma_scale,
                               min_confidence=suggested_min_confidence(estimator) if min_confidence is None
                               else min_confidence)
             ctrl = (AssistedDFDController(optics, illumination=pattern, **dfd_kwargs) if pattern is not None

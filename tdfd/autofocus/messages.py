@@ -245,6 +245,8 @@ class AFResult:
             CPU on the ROI; the simulated bench charges them to the time to focus).
         cross_blur_measurements: cross-blur focus searches the evidence took (about 25-35 ms
             each on the bench's ROI; charged likewise).
+        pair_cross_blur_checks: 2-frame cross-blur searches of the DFD pair, one PSF family (the
+            check of a known disk PSF: about a fifth of a 3-frame search; charged likewise).
         refocus_count: DFD cycles run (continuous mode counts every re-estimate).
         history: ``(t_s, power_dpt, depth_m)`` of every focus decision (continuous mode).
     """
@@ -271,6 +273,7 @@ class AFResult:
     pair_agrees: bool | None = None
     blur_measurements: int = 0
     cross_blur_measurements: int = 0
+    pair_cross_blur_checks: int = 0
     refocus_count: int = 0
     history: list[tuple[float, float, float | None]] = field(default_factory=list)
 

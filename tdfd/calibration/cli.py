@@ -15,7 +15,11 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+from dataclasses import replace
 from pathlib import Path
+from typing import Any, Sequence
+
+from ..errors import InputError
 
 __all__ = ["register", "run"]
 
@@ -32,8 +36,37 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", required=True, metavar="CAM.json", help="fitted camera JSON to write")
     p.add_argument("--route", choices=("auto", "self", "known-distance"), default="auto")
     p.add_argument("--region", type=int, default=64, help="region (tile) side in px (default 64)")
+    p.add_argument("--psf-family", choices=("measure", "gaussian", "pillbox", "unknown"), default="measure",
+                   help="the lens's PSF family written to the camera file: measured from the scenes with three or more "
+                        "frames (default; left out when they do not decide it), given, or left out")
     p.add_argument("--no-plot", action="store_true", help="do not write the fit plot")
     p.set_defaults(func=run)
+
+
+def _psf_family(choice: str, frames: Sequence[Any], camera_file: Any) -> tuple[str | None, float, str]:
+    """The PSF family to write (``None``: none), its blur scale and a line saying where they came from."""
+    from .psf_family import psf_family_from_captures  # lazily, as the fit: building the CLI imports no numpy work
+
+    if choice in ("gaussian", "pillbox"):
+        try:
+            fit = psf_family_from_captures(frames, camera_file, min_ratio=1.0)
+            scale = fit.sigma_scale.get(choice, 1.0)
+        except InputError as exc:
+            log.warning("no blur scale measured for the given family (1 assumed): %s", exc)
+            scale = 1.0
+        return choice, scale, f"{choice} (given with --psf-family), blur scale {scale:.3f}"
+    if choice == "unknown":
+        return None, 1.0, "not written (--psf-family unknown)"
+    try:
+        fit = psf_family_from_captures(frames, camera_file)
+    except InputError as exc:
+        return None, 1.0, f"not measured: {exc}"
+    if fit.family is None:
+        return None, 1.0, (f"not written: the captures do not decide it (the other family fits {fit.cost_ratio:.2f}x "
+                           f"worse over {fit.regions} regions; measured from a focus sweep of a textured scene)")
+    scale = fit.sigma_scale[fit.family]
+    return fit.family, scale, (f"{fit.family}, measured (the other family fits {fit.cost_ratio:.2f}x worse over "
+                               f"{fit.regions} regions), blur scale {scale:.3f}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -50,6 +83,10 @@ def run(args: argparse.Namespace) -> int:
     result = fit(frames, nominal, region=args.region, nominal_path=str(args.camera))
     result.camera_file.calibration["folder"] = (  # type: ignore[index]
         str(args.folders[0]) if len(args.folders) == 1 else [str(f) for f in args.folders])
+    family, scale, family_line = _psf_family(args.psf_family, frames, result.camera_file)
+    if family is not None:
+        result.camera_file = replace(result.camera_file, psf_family=family, psf_sigma_scale=scale)
+    result.camera_file.calibration["psf_family"] = family_line  # type: ignore[index]
     out = result.camera_file.write(args.output)
     s = result.summary()
     print(f"calibrated {len(frames)} frames of {', '.join(map(str, args.folders))} ({route} route) -> {out}")
@@ -60,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"  -> fixed_focal_length_m = {cam.fixed_focal_length_m:.6g} (nominal {nominal.camera.fixed_focal_length_m:.6g}); "
           f"power offset vs datasheet {result.camera_file.calibration['power_offset_vs_datasheet_dpt']:+.4f} dpt")
     print(f"  breathing: magnification_per_dpt = {result.magnification_per_dpt:.5g} ({100 * result.magnification_per_dpt:.3f} %/dpt)")
+    print(f"  PSF family: {family_line}")
     for kind, rms in s["residual_rms_dpt"].items():
         print(f"  residuals {kind}: RMS {rms:.4f} dpt over {s['counts'][kind]}" if rms is not None else f"  residuals {kind}: none")
     log.info("calibration summary: %s", json.dumps(s))

@@ -6,6 +6,11 @@ What lives where (imports point down this list, and into :mod:`tdfd.autofocus`'s
   (owns the emulator), builds the controllers and runs trials, single-shot or continuous.
 * :mod:`~tdfd.autofocus.sim.plant`: :class:`BenchPlant`, executes controller commands
   on the parts below and charges simulated time for each.
+* :mod:`~tdfd.autofocus.sim.charges`: the computation the bench charges (median wall times of
+  the estimator, the relative-blur measurements and cross-blur searches on this machine).
+* :mod:`~tdfd.autofocus.sim.psf_calibration`: the simulated optics' PSF family, measured by a
+  focus sweep of a noise chart (:mod:`tdfd.capture.sim`, :mod:`tdfd.calibration.psf_family`)
+  as ``tdfd calibrate`` measures a real lens's.
 * :mod:`~tdfd.autofocus.sim.trials`: :class:`TrialRecord` (one trial, the report's raw
   material) and :func:`trial_depths` (seeded target distances).
 * :mod:`~tdfd.autofocus.sim.lens`: :class:`EmulatedLens`, the Lens Driver 4 emulator on a

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import time
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -50,15 +49,14 @@ from ...errors import InputError
 from ...light.guard import DEFAULT_LIMITS, LightGuard, LightLimits
 from ..assist import AssistedDFDController
 from ..contrast import ContrastController
-from ..cross_blur import cross_blur_focus
 from ..dfd import DFDController
 from ..estimators import suggested_confidence_scale, suggested_min_confidence
 from ..interfaces import Estimator
 from ..machine import StateMachine, drive
 from ..messages import AFResult
-from ..relative_blur import relative_blur_px2, relative_blur_search_px2
-from ..roi import Roi, roi_crop_box
+from ..roi import Roi
 from .camera import VirtualCamera
+from .charges import cross_blur_wall_s, estimator_wall_s, evidence_wall_s, pair_cross_blur_wall_s
 from .clock import SimClock
 from .lens import EmulatedLens
 from .noise import SensorNoise
@@ -73,18 +71,6 @@ log = logging.getLogger(__name__)
 
 #: default sensor read-out window (AOI) of the virtual camera, ``(H, W)`` px, centred on the reference sensor
 DEFAULT_READOUT_HW = (256, 320)
-
-
-def _median_wall_s(run: Callable[[], object], repeats: int, warm_up: bool = True) -> float:
-    """Median wall time (s) of ``run()`` over ``repeats`` calls, after an untimed warm-up call."""
-    if warm_up:
-        run()
-    times = []
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
 
 
 class SimBench:
@@ -120,6 +106,8 @@ class SimBench:
             (``None``: calibrated on this machine when the bench opens, 0 with ``compute_s=0``);
             added to the trial's time to focus (every one lies on the path to the declaration).
         cross_blur_s: likewise per cross-blur focus search (:mod:`tdfd.autofocus.cross_blur`).
+        pair_cross_blur_s: likewise per 2-frame check of a known disk PSF (a cross-blur search
+            of the DFD pair, one family: about a fifth of a 3-frame search; :mod:`.charges`).
         true_camera: the simulated optics when they differ from ``camera`` (a
             :class:`~tdfd.camera_file.CameraFile`: its camera, ECVFL power offset and focus
             breathing, as in :mod:`tdfd.capture.sim`). ``camera`` is then what the
@@ -136,7 +124,7 @@ class SimBench:
                  contrast: dict | None = None, texture_families: Sequence[str] | None = None,
                  light: Any | None = None, light_limits: LightLimits = DEFAULT_LIMITS,
                  evidence_s: float | None = None, true_camera: CameraFile | None = None,
-                 cross_blur_s: float | None = None) -> None:
+                 cross_blur_s: float | None = None, pair_cross_blur_s: float | None = None) -> None:
         if camera is None:
             camera = estimator.camera if estimator is not None else Camera.preset("reference")
         self.camera, self.estimator = camera, estimator
@@ -163,44 +151,19 @@ class SimBench:
         self.compute_charge_s: float | str = compute_s if compute_s != "calibrated" else "measured"
         self.evidence_charge_s: float | None = evidence_s
         self.cross_blur_charge_s: float | None = cross_blur_s
-
-    def _calibration_texture(self) -> np.ndarray:
-        """A smooth random texture of the read-out size (seeded) that the evidence timings run on."""
-        import cv2
-
-        rng = np.random.default_rng(54321)
-        return cv2.GaussianBlur(rng.uniform(0.2, 0.8, self.readout_hw).astype(np.float32), (0, 0), 1.0)
+        self.pair_cross_blur_charge_s: float | None = pair_cross_blur_s
 
     def calibrate_evidence(self, repeats: int = 5) -> float:
-        """Median wall time (s) of one relative-blur measurement on the ROI (the controller's evidence,
-        :func:`tdfd.autofocus.relative_blur.relative_blur` with its uncertainty, searched over the camera's range:
-        :func:`~tdfd.autofocus.relative_blur.relative_blur_search_px2`), after one warm-up run."""
-        import cv2
-
-        a = self._calibration_texture()
-        b = cv2.GaussianBlur(a, (0, 0), 2.0)
-        search = relative_blur_search_px2(self.camera)
-        return _median_wall_s(lambda: relative_blur_px2(a, b, self.roi, max_px2=search), repeats)
+        """Median wall time (s) of one relative-blur measurement on the ROI (:func:`~.charges.evidence_wall_s`)."""
+        return evidence_wall_s(self.camera, self.roi, self.readout_hw, repeats)
 
     def calibrate_cross_blur(self, repeats: int = 3) -> float:
-        """Median wall time (s) of one cross-blur focus search on three frames of the ROI."""
-        import cv2
-
-        a = self._calibration_texture()
-        frames = [(cv2.GaussianBlur(a, (0, 0), s), p) for s, p in ((1.5, 1.7), (2.5, 2.7), (1.0, 2.0))]
-        return _median_wall_s(lambda: cross_blur_focus(frames, self.camera, self.roi), repeats, warm_up=False)
+        """Median wall time (s) of one cross-blur focus search on three frames (:func:`~.charges.cross_blur_wall_s`)."""
+        return cross_blur_wall_s(self.camera, self.roi, self.readout_hw, repeats)
 
     def calibrate_compute(self, repeats: int = 7) -> float:
-        """Median wall time (s) of the estimator on a pair of frames of the size the DFD
-        controller sends (the grid-aligned crop around the ROI), after one warm-up run."""
-        if self.estimator is None:
-            return 0.0
-        y0, y1, x0, x1 = roi_crop_box(self.roi, self.readout_hw, self.estimator.tile, self.estimator.stride)
-        rng = np.random.default_rng(12345)
-        a = rng.uniform(0.2, 0.8, (y1 - y0, x1 - x0)).astype(np.float32)
-        b = rng.uniform(0.2, 0.8, (y1 - y0, x1 - x0)).astype(np.float32)
-        estimator = self.estimator
-        return _median_wall_s(lambda: estimator(a, b), repeats)
+        """Median wall time (s) of the estimator on the crop the DFD controller sends (:func:`~.charges.estimator_wall_s`)."""
+        return estimator_wall_s(self.estimator, self.roi, self.readout_hw, repeats)
 
     # ------------------------------------------------------------------ life cycle
     def open(self) -> "SimBench":
@@ -212,6 +175,9 @@ class SimBench:
             log.info("evidence charged per relative-blur measurement: %.1f ms", self.evidence_charge_s * 1e3)
         if self.cross_blur_charge_s is None:
             self.cross_blur_charge_s = self.calibrate_cross_blur() if self.compute_s != 0 else 0.0
+        if self.pair_cross_blur_charge_s is None:
+            self.pair_cross_blur_charge_s = (pair_cross_blur_wall_s(self.camera, self.roi, self.readout_hw)
+                                             if self.compute_s != 0 else 0.0)
         if self.compute_s == "calibrated" and self.compute_charge_s == "measured" and self.estimator is not None:
             self.compute_charge_s = self.calibrate_compute()
             log.info("estimator compute time charged per estimate: %.1f ms (median on this machine)",
@@ -316,7 +282,9 @@ class SimBench:
         true, offset = self.true_camera.camera, self.true_camera.ecvfl_offset_dpt
         ideal = true.in_focus_power_dpt(target) - offset  # the command that focuses the target
         t_end = result.t_focus_s if result.t_focus_s is not None else self.clock.now()
-        final = self.lens.optical_power_at(t_end)
+        # an undeclared run's lens still settles on its last command (the run ends at the command)
+        final = self.lens.optical_power_at(t_end if result.t_focus_s is not None or not result.history
+                                           else max(t_end, result.history[-1][0]))
         resid = abs(float(camera_blur_radii_px(true, target, final + offset)))
         t0 = result.t_start_s if result.t_start_s is not None else t_end
         reason = (result.error or result.fallback_reason) if result.status != "focused" else result.fallback_reason
@@ -330,7 +298,8 @@ class SimBench:
             final_power_dpt=float(final), residual_blur_px=resid, frames=result.frames,
             lens_commands=result.lens_commands,
             time_ms=(t_end - t0 + result.blur_measurements * float(self.evidence_charge_s or 0.0)
-                     + result.cross_blur_measurements * float(self.cross_blur_charge_s or 0.0)) * 1e3,
+                     + result.cross_blur_measurements * float(self.cross_blur_charge_s or 0.0)
+                     + result.pair_cross_blur_checks * float(self.pair_cross_blur_charge_s or 0.0)) * 1e3,
             method=result.method,
             requested=requested, status=result.status, reason=reason, confidence=result.confidence,
             compute_ms=compute, verified=result.verified, trial=trial, evidence=result.evidence,
