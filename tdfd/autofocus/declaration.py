@@ -280,11 +280,8 @@ class FocusDeclaration:
             # the pair's cross-blur focus: a place to take the verification frame from (two frames
             # are half the time over 1 px wrong on periodic textures; the three frames' one decides)
             res.cross_blur_measurements += 1
-            try:
-                cb = cross_blur_focus([(f1.image, f1.power_dpt), (f2.image, f2.power_dpt)], self.camera, roi,
-                                      shapes=self._psf_families(), sigma_scale=self.psf_sigma_scale)
-            except InputError as exc:
-                log.info("no cross-blur focus of the pair: %s", exc)
+            cb = self._pair_cross_blur(f1, f2, roi)
+            if cb is None:
                 return False
             log.info("the pair's cross-blur focus %.3f dpt (%s, contrast %.3f, edge %s)", cb.power_dpt, cb.shape,
                      cb.contrast, cb.at_edge)
@@ -307,6 +304,16 @@ class FocusDeclaration:
         """The PSF families the cross-blur searches fit: the lens's, when the controller knows it."""
         return PSF_FAMILIES if self.psf_family is None else (self.psf_family,)
 
+    def _pair_cross_blur(self, f1: Frame, f2: Frame, roi: Roi) -> CrossBlurFocus | None:
+        """The DFD pair's own cross-blur focus (the known family's, else both), ``None`` (logged)
+        where the frames allow none."""
+        try:
+            return cross_blur_focus([(f1.image, f1.power_dpt), (f2.image, f2.power_dpt)], self.camera, roi,
+                                    shapes=self._psf_families(), sigma_scale=self.psf_sigma_scale)
+        except InputError as exc:
+            log.info("no cross-blur focus of the DFD pair: %s", exc)
+            return None
+
     def _unique(self, cb: CrossBlurFocus, tol: float) -> bool:
         """With the PSF family known, a cross-blur focus must be the cost curve's only clear minimum:
         its runner-up lies within ``tol`` or costs ``cross_blur_family_ratio`` x more. (Unknown, the
@@ -318,15 +325,12 @@ class FocusDeclaration:
         """The 2-frame check with a known disk PSF: the DFD pair's own cross-blur focus (that family
         only, no model) is sure (not at its span's edge, a cost contrast of at least
         ``cross_blur_min_contrast``, its curve's one clear minimum: :meth:`_unique`) and within
-        ``slack`` of the model's power ``target``. The
-        relative blur's Gaussian fit is no check here: on a periodic texture a disk's MTF
-        reversals mislead it and the model alike (docs/BENCHMARKS.md, reliability)."""
+        ``slack`` of the model's power ``target``. The relative blur's Gaussian fit is no check
+        here: on a periodic texture a disk's MTF reversals mislead it and the model alike
+        (docs/BENCHMARKS.md, reliability)."""
         self.result.pair_cross_blur_checks += 1
-        try:
-            cb = cross_blur_focus([(f1.image, f1.power_dpt), (f2.image, f2.power_dpt)], self.camera, roi,
-                                  shapes=self._psf_families(), sigma_scale=self.psf_sigma_scale)
-        except InputError as exc:
-            log.info("no pair check: %s", exc)
+        cb = self._pair_cross_blur(f1, f2, roi)
+        if cb is None:
             return False
         agrees = (not cb.at_edge and cb.contrast >= self.cross_blur_min_contrast and self._unique(cb, slack)
                   and abs(cb.power_dpt - target) <= slack)
