@@ -131,7 +131,7 @@ def test_the_psf_family_option_rejects_what_it_cannot_use(tmp_path):
 
 # checkers through a disk at 0.797 m (the reliability benchmark's tuning seed 10, trial 3): the
 # pair's Gaussian fits (relative blur, a Gaussian cross-blur) put focus at 2.02 dpt, the disk near
-# the truth, 1.25 dpt, at a cost under 1.5x apart (3 % with the bench's noise): with the family
+# the truth, 1.25 dpt, at a cost under 1.5x apart (2 % with sensor noise added): with the family
 # unknown the two frames cannot tell
 CHECKERS_M = 0.797
 CHECKERS = torch.from_numpy(Scene.texture_plane((128, 160), CHECKERS_M, seed=1100033).sharp.astype(np.float32))[None, None]
