@@ -266,3 +266,46 @@ def test_tdfd_autofocus_takes_the_family(capsys, tmp_path):
         assert main(["autofocus", "--port", missing, "--camera", "0", "--model", "analytic",
                      "--psf-family", value]) == 1
         assert message in capsys.readouterr().err
+
+
+def test_run_hardware_hands_the_family_to_the_controller(monkeypatch):
+    """The hardware loop (emulated Lens Driver 4 through the real driver, a camera object that
+    renders a disk-blurred texture at the lens's power) builds its DFD controller with the
+    family and scale it is given, and focuses."""
+    import tdfd.autofocus.hardware as hw
+    from tdfd.autofocus.estimators import AnalyticEstimator
+    from tdfd.driver import EmulatorServer, OptotuneLens
+
+    seen: dict = {}
+
+    class Spy(hw.DFDController):
+        def __init__(self, camera, **kw):
+            seen.update(kw)
+            super().__init__(camera, **kw)
+
+    class DiskCamera:
+        def __init__(self, device):
+            self.device = device
+            self.sharp = torch.from_numpy(np.random.default_rng(2).random((1, 1, 128, 160)).astype(np.float32))
+
+        def read(self):
+            depth = torch.full_like(self.sharp, 0.5)
+            p = torch.tensor([self.device.focal_power_dpt])
+            return render_at_power(CAM, self.sharp, depth, p, shape="pillbox")[0, 0].numpy()
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(hw, "DFDController", Spy)
+    srv = EmulatorServer(temperature_c=22.0).start()
+    try:
+        lens = OptotuneLens.open(srv.port, timeout_s=0.2)
+        try:
+            res = hw.run_hardware(None, 0, AnalyticEstimator(CAM), camera=DiskCamera(srv.device), lens=lens,
+                                  temperature_limits_c=(15.0, 25.0), psf_family="pillbox", psf_sigma_scale=1.1)
+        finally:
+            lens.close()
+    finally:
+        srv.stop()
+    assert seen["psf_family"] == "pillbox" and seen["psf_sigma_scale"] == 1.1
+    assert res.status == "focused" and _blur_px(0.5, res.power_dpt) < 1.0
