@@ -196,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
         from tdfd.autofocus.sim.psf_calibration import SWEEP_FRAMES, SWEEP_HALF_SPAN_PX, measure_sim_psf_family
 
         fits = {psf: measure_sim_psf_family(est.camera, psf, seed=0, size=DEFAULT_READOUT_HW) for psf in PSFS}
-        families = {psf: (fit.family, fit.sigma_scale[fit.family] if fit.family else 1.0) for psf, fit in fits.items()}
+        families = {psf: (fit.family, fit.family_sigma_scale) for psf, fit in fits.items()}
         family_line = (
             "The controller is told the lens's PSF family as a calibration measures it (`--psf-family calibrate`): "
             f"a focus sweep of {SWEEP_FRAMES} frames (+-{SWEEP_HALF_SPAN_PX:g} px of blur) of a band-limited "
@@ -234,7 +234,8 @@ def main(argv: list[str] | None = None) -> int:
     bar.close()
     wall = time.perf_counter() - t_wall
     OUT.mkdir(parents=True, exist_ok=True)
-    write_report(OUT / ("reliability.json" if args.psf_family == "unknown" else "reliability_calibrated_psf.json"), dfd + con,
+    report = "reliability.json" if args.psf_family == "unknown" else "reliability_calibrated_psf.json"
+    write_report(OUT / report, dfd + con,
                  {"configuration": "reliability", "estimator": est_name, "seeds": seeds, "psf": list(PSFS),
                   "psf_family_told": families})
 
@@ -354,7 +355,7 @@ DFD trials that did not end in focus ({len(notes)}):
 {chr(10).join('- ' + x for x in notes) if notes else '- none'}
 
 Report (CONTRACT.md section 3 plus `declared`, `evidence`, `verified` per trial):
-`out/autofocus/{"reliability.json" if args.psf_family == "unknown" else "reliability_calibrated_psf.json"}`.
+`out/autofocus/{report}`.
 Wall time of this benchmark: {wall / 60:.1f} min.
 """
     if not args.no_doc:

@@ -222,7 +222,7 @@ def _run_sim(args: argparse.Namespace) -> int:
     optics = est.camera if est is not None else Camera.preset("reference")
     controller["psf_family"], controller["psf_sigma_scale"] = resolve_psf_family(args.psf_family, sim_camera=optics,
                                                                                  sim_psf=_psf(args.psf))
-    light, light_controller = sim_light(args, est.camera if est is not None else Camera.preset("reference"))
+    light, light_controller = sim_light(args, optics)
     controller.update(light_controller)
     bench = SimBench(light=light, light_limits=light_limits(args), estimator=est, readout_hw=readout, roi=roi, timing=timing,
                      noise=SensorNoise(enabled=not args.no_noise), settle_s=args.settle_ms / 1e3,

@@ -47,11 +47,10 @@ from ..errors import InputError
 from .evidence import sigma_px_per_dpt, working_powers_dpt
 from .roi import Roi
 
-__all__ = ["CrossBlurFocus", "cross_blur_focus", "bessel_j1", "disk_otf", "PSF_FAMILIES"]
+__all__ = ["CrossBlurFocus", "cross_blur_focus", "bessel_j1", "disk_otf", "evenly_thinned", "PSF_FAMILIES"]
 
 #: the PSF families the search fits: a Gaussian and a uniform disk (pillbox) of the same RMS radius
 PSF_FAMILIES = ("gaussian", "pillbox")
-SHAPES = PSF_FAMILIES
 
 
 @dataclass(frozen=True)
@@ -98,6 +97,20 @@ def _runner_up(candidates: np.ndarray, costs: np.ndarray, best: int) -> tuple[fl
         return math.nan, math.inf
     k = min(minima, key=lambda i: costs[i])
     return float(candidates[k]), float(costs[k] / max(costs[best], 1e-300))
+
+
+def evenly_thinned(items: Sequence, n: int) -> list:
+    """At most ``n`` of ``items`` (e.g. frames sorted by power), evenly spread, both ends kept:
+    a long sweep or contrast scan costs a search in proportion to its frame pairs.
+
+    Example:
+        >>> evenly_thinned(list(range(10)), 4)
+        [0, 3, 6, 9]
+    """
+    items = list(items)
+    if len(items) <= n:
+        return items
+    return [items[int(round(k * (len(items) - 1) / (n - 1)))] for k in range(n)]
 
 
 def bessel_j1(x: np.ndarray) -> np.ndarray:
@@ -172,7 +185,7 @@ def _cost(power: list[np.ndarray], cross: dict[tuple[int, int], np.ndarray], off
 
 
 def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera, roi: Roi | None = None, *,
-                     span_dpt: tuple[float, float] | None = None, shapes: Sequence[str] = SHAPES,
+                     span_dpt: tuple[float, float] | None = None, shapes: Sequence[str] = PSF_FAMILIES,
                      coarse_dpt: float = 0.1, fine_dpt: float = 0.01, sigma_scale: float = 1.0) -> CrossBlurFocus:
     """The in-focus power (and PSF family) that best explains the frames (module docstring).
 
@@ -194,8 +207,8 @@ def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera,
     """
     if len(frames) < 2 or max(p for _, p in frames) - min(p for _, p in frames) < 0.02:
         raise InputError("cross_blur_focus needs at least two frames 0.02 dpt apart")
-    if not set(shapes) <= set(SHAPES) or not shapes:
-        raise InputError(f"shapes must be among {SHAPES}, got {tuple(shapes)}")
+    if not set(shapes) <= set(PSF_FAMILIES) or not shapes:
+        raise InputError(f"shapes must be among {PSF_FAMILIES}, got {tuple(shapes)}")
     if not (coarse_dpt > 0 and fine_dpt > 0 and sigma_scale > 0):
         raise InputError("coarse_dpt, fine_dpt and sigma_scale must be > 0")
     crops = [np.asarray(im if roi is None else roi.crop(np.asarray(im)), dtype=np.float64) for im, _ in frames]

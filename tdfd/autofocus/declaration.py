@@ -230,7 +230,7 @@ class FocusDeclaration:
                  cb.other_power_dpt, cb.other_cost_ratio, cb.runner_up_power_dpt, cb.runner_up_ratio, cb.at_edge,
                  lo_s, hi_s)
         clear_disk = cb.shape == "pillbox" and cb.other_cost_ratio >= self.cross_blur_family_ratio
-        credible = not cb.at_edge and limits[0] <= cb.power_dpt <= limits[1] and cb.contrast >= self.cross_blur_min_contrast
+        credible = self._credible(cb, limits)
         sure = (credible and self._unique(cb, tol)
                 and (abs(cb.other_power_dpt - cb.power_dpt) <= tol or cb.other_cost_ratio >= self.cross_blur_family_ratio)
                 # a disk's MTF has zeros and reversals: on a periodic texture a blurrier frame can look
@@ -285,7 +285,7 @@ class FocusDeclaration:
                 return False
             log.info("the pair's cross-blur focus %.3f dpt (%s, contrast %.3f, edge %s)", cb.power_dpt, cb.shape,
                      cb.contrast, cb.at_edge)
-            if cb.at_edge or not lo_w <= cb.power_dpt <= hi_w or cb.contrast < self.cross_blur_min_contrast:
+            if not self._credible(cb, (lo_w, hi_w)):
                 return False
             target, lo, hi = cb.power_dpt, math.nan, math.nan
         log.warning("%s: the DFD pair's own in-focus power %.3f dpt (%s) instead, to be verified", reason, target,
@@ -314,6 +314,13 @@ class FocusDeclaration:
             log.info("no cross-blur focus of the DFD pair: %s", exc)
             return None
 
+    def _credible(self, cb: CrossBlurFocus, limits: tuple[float, float] | None = None) -> bool:
+        """A cross-blur focus to act on or to object with: not at its span's edge, a cost curve with
+        a contrast of at least ``cross_blur_min_contrast`` (frames that differ by little more than
+        their noise single no power out), and within the powers ``limits`` when given."""
+        return (not cb.at_edge and cb.contrast >= self.cross_blur_min_contrast
+                and (limits is None or limits[0] <= cb.power_dpt <= limits[1]))
+
     def _unique(self, cb: CrossBlurFocus, tol: float) -> bool:
         """With the PSF family known, a cross-blur focus must be the cost curve's only clear minimum:
         its runner-up lies within ``tol`` or costs ``cross_blur_family_ratio`` x more. (Unknown, the
@@ -332,8 +339,7 @@ class FocusDeclaration:
         cb = self._pair_cross_blur(f1, f2, roi)
         if cb is None:
             return False
-        agrees = (not cb.at_edge and cb.contrast >= self.cross_blur_min_contrast and self._unique(cb, slack)
-                  and abs(cb.power_dpt - target) <= slack)
+        agrees = self._credible(cb) and self._unique(cb, slack) and abs(cb.power_dpt - target) <= slack
         log.info("DFD pair's disk cross-blur focus %.3f dpt (contrast %.3f, runner-up %.3f dpt at %.2fx, edge %s); "
                  "the model's %.3f dpt %s", cb.power_dpt, cb.contrast, cb.runner_up_power_dpt, cb.runner_up_ratio,
                  cb.at_edge, target, "agrees" if agrees else "DISAGREES")

@@ -14,7 +14,7 @@ contrast peaks on the MTF's side lobes.
 The mixin reads the controller's ``fallback``, ``contrast_kwargs``, ``contrast_min_peak``,
 ``cross_blur``, ``psf_family``, ``psf_sigma_scale``, ``cross_blur_min_contrast`` and
 ``verify_tolerance_px``, and uses the state machine's ``_set_power`` and the controller's
-``_contrast_light``, ``_roi_for`` and ``_unique``.
+``_contrast_light``, ``_roi_for``, ``_credible`` and ``_unique``.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from typing import Generator
 
 from ..errors import InputError
 from .contrast import ContrastSearch
-from .cross_blur import cross_blur_focus
+from .cross_blur import cross_blur_focus, evenly_thinned
 from .evidence import blur_px_per_dpt, working_powers_dpt
 from .machine import Gen
 from .messages import Command, Frame, Observation, State
@@ -45,20 +45,28 @@ class ContrastFallback:
     def _not_confirmed(self, reason: str, power: float, pair: tuple[Frame, Frame]
                        ) -> Generator[Command, Observation, tuple[Frame, Frame] | None]:
         """The DFD focus could not be confirmed: a contrast-detect search around it, or no declaration."""
-        res = self.result
-        prior = res.fallback_reason  # why the estimate came without the model (the pair's own), if it did
-        res.fallback_reason = f"{prior}; {reason}" if prior else reason
         if not self.fallback:
-            log.warning("%s: focus not declared", reason)
-            res.status = "unconfirmed"
-            res.t_focus_s = None
+            self._undeclared(reason)
             return None
+        self._add_reason(reason)  # after why the estimate came without the model (the pair's own), if it did
         # around the estimate: a scan of the whole range did no better on the reliability benchmark
         # (9 declared out of focus in 1000 against 8; both are the contrast search's false peaks on
         # low-frequency textures) and costs more frames
         log.warning("%s: contrast-detect AF decides around %.3f dpt", reason, power)
         yield from self._contrast(power)
         return None
+
+    def _add_reason(self, reason: str) -> None:
+        """Append ``reason`` to the result's fall-back reasons."""
+        prior = self.result.fallback_reason
+        self.result.fallback_reason = f"{prior}; {reason}" if prior else reason
+
+    def _undeclared(self, reason: str) -> None:
+        """The run ends without a declaration (the lens where it was last sent), saying why."""
+        self._add_reason(reason)
+        log.warning("%s: focus not declared", reason)
+        self.result.status = "unconfirmed"
+        self.result.t_focus_s = None
 
     def _contrast(self, centre_dpt: float | None) -> Gen:
         """The contrast search (around ``centre_dpt``, else over the whole range), its peak declared
@@ -70,37 +78,24 @@ class ContrastFallback:
         if centre_dpt is not None:  # a local search around the DFD answer
             kwargs.setdefault("span_dpt", (centre_dpt - 0.6, centre_dpt + 0.6))
         search = ContrastSearch(self.camera, roi=self.roi, **kwargs)
-        power = yield from search.search(self)
+        peak = yield from search.search(self)
         frame_hw = search.frames[-1][0].shape[-2:] if search.frames else None
-        elsewhere = None if frame_hw is None else self._contrast_contradicted(search.frames, power, self._roi_for(frame_hw))
-        if elsewhere is not None:  # a side-lobe peak: the lens goes to the frames' focus, nothing declared
-            power = self.check_power(elsewhere)
-            self.state = State.MOVE_FOCUS
-            ack = yield from self._set_power(power)
-            self.result.method, self.result.power_dpt, self.result.t_focus_s = "contrast", power, None
-            self.result.history.append((ack.ready_s, power, None))
-            reason = f"the contrast peak is contradicted by its frames' cross-blur focus {power:.3f} dpt (the lens is there)"
-            prior = self.result.fallback_reason
-            self.result.fallback_reason = f"{prior}; {reason}" if prior else reason
-            log.warning("%s: focus not declared", reason)
-            self.result.status = "unconfirmed"
-            return
-        power = self.check_power(power)
+        elsewhere = None if frame_hw is None else self._contrast_contradicted(search.frames, peak, self._roi_for(frame_hw))
+        power = self.check_power(peak if elsewhere is None else elsewhere)
         self.state = State.MOVE_FOCUS
         ack = yield from self._set_power(power)
         self.result.method = "contrast"
         self.result.power_dpt = power
         self.result.history.append((ack.ready_s, power, None))
+        if elsewhere is not None:  # a side-lobe peak: the lens is at the frames' focus, nothing declared
+            self._undeclared(f"the contrast peak is contradicted by its frames' cross-blur focus {power:.3f} dpt "
+                             "(the lens is there)")
+            return
         values = [v for _, v in search.samples]
         if values and not max(values) >= self.contrast_min_peak * min(values) > 0:
             # a peak that hardly rises above the scan's least sharp frame is sensor noise, not focus
-            reason = (f"no contrast peak: the sharpest frame is {max(values) / max(min(values), 1e-300):.3f}x the "
-                      f"least sharp (below {self.contrast_min_peak:g}x)")
-            prior = self.result.fallback_reason
-            self.result.fallback_reason = f"{prior}; {reason}" if prior else reason
-            log.warning("%s: focus not declared", reason)
-            self.result.status = "unconfirmed"
-            self.result.t_focus_s = None
+            self._undeclared(f"no contrast peak: the sharpest frame is {max(values) / max(min(values), 1e-300):.3f}x "
+                             f"the least sharp (below {self.contrast_min_peak:g}x)")
             return
         self._declare(ack.ready_s, "contrast")
 
@@ -115,10 +110,7 @@ class ContrastFallback:
         6 px). Charged as one 3-frame search per three frame pairs."""
         if not (self.cross_blur and self.psf_family is not None and len({p for _, p in frames}) >= 3):
             return None
-        frames = sorted(frames, key=lambda fp: fp[1])
-        if len(frames) > CONTRAST_CHECK_FRAMES:
-            n = CONTRAST_CHECK_FRAMES
-            frames = [frames[round(k * (len(frames) - 1) / (n - 1))] for k in range(n)]
+        frames = evenly_thinned(sorted(frames, key=lambda fp: fp[1]), CONTRAST_CHECK_FRAMES)
         pairs = len(frames) * (len(frames) - 1) // 2
         self.result.cross_blur_measurements += -(-pairs // 3)
         try:
@@ -127,12 +119,10 @@ class ContrastFallback:
             log.info("no cross-blur check of the contrast peak: %s", exc)
             return None
         tol = self.verify_tolerance_px / blur_px_per_dpt(self.camera)
-        lo_w, hi_w = working_powers_dpt(self.camera)
         log.info("contrast peak %.3f dpt; the scan frames' cross-blur focus %.3f dpt (contrast %.3f, runner-up %.3f dpt "
                  "at %.2fx, edge %s)", peak, cb.power_dpt, cb.contrast, cb.runner_up_power_dpt, cb.runner_up_ratio,
                  cb.at_edge)
-        if (not cb.at_edge and lo_w <= cb.power_dpt <= hi_w and cb.contrast >= self.cross_blur_min_contrast
-                and abs(cb.power_dpt - peak) > tol
+        if (self._credible(cb, working_powers_dpt(self.camera)) and abs(cb.power_dpt - peak) > tol
                 and (self._unique(cb, tol) or abs(cb.runner_up_power_dpt - peak) > tol)):
             return cb.power_dpt
         return None

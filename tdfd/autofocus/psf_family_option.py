@@ -56,12 +56,12 @@ def resolve_psf_family(text: str, *, sim_camera: Camera | None = None, sim_psf: 
         if sim_camera is None:
             raise InputError("--psf-family calibrate measures the simulated optics (--sim); on hardware run "
                              "'tdfd calibrate' on a focus sweep and give its camera JSON")
-        from .sim.psf_calibration import measure_sim_psf_family
+        from .sim.psf_calibration import measure_sim_psf_family  # renders with torch: loaded only here
 
         fit = measure_sim_psf_family(sim_camera, sim_psf)
         log.info("--psf-family calibrate: %s (the other family %.2fx the cost)", fit.family or "undecided",
                  fit.cost_ratio)
-        return fit.family, (fit.sigma_scale[fit.family] if fit.family is not None else 1.0)
+        return fit.family, fit.family_sigma_scale
     path = Path(text)
     if path.suffix.lower() != ".json":
         raise InputError(f"--psf-family must be one of {PSF_FAMILY_VALUES}, 'unknown', 'calibrate' (--sim) or a "

@@ -64,7 +64,7 @@ def _psf_family(choice: str, frames: Sequence[Any], camera_file: Any) -> tuple[s
     if fit.family is None:
         return None, 1.0, (f"not written: the captures do not decide it (the other family fits {fit.cost_ratio:.2f}x "
                            f"worse over {fit.regions} regions; measured from a focus sweep of a textured scene)")
-    scale = fit.sigma_scale[fit.family]
+    scale = fit.family_sigma_scale
     return fit.family, scale, (f"{fit.family}, measured (the other family fits {fit.cost_ratio:.2f}x worse over "
                                f"{fit.regions} regions), blur scale {scale:.3f}")
 

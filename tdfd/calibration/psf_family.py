@@ -43,12 +43,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..autofocus.cross_blur import PSF_FAMILIES, cross_blur_focus
+from ..autofocus.cross_blur import PSF_FAMILIES, cross_blur_focus, evenly_thinned
 from ..autofocus.evidence import sigma_px_per_dpt
 from ..autofocus.roi import Roi
 from ..breathing import magnify
 from ..camera import Camera
 from ..errors import InputError
+from .fit import group_scenes
 
 __all__ = ["PsfFamilyFit", "psf_family_from_frames", "psf_family_from_captures", "MIN_FAMILY_RATIO",
            "MIN_FAMILY_FRAMES", "MAX_FAMILY_FRAMES", "MAX_FAMILY_REGIONS"]
@@ -98,6 +99,11 @@ class PsfFamilyFit:
     in_focus_power_dpt: dict[str, float] = field(default_factory=dict)
     sigma_scale: dict[str, float] = field(default_factory=dict)
 
+    @property
+    def family_sigma_scale(self) -> float:
+        """The named family's blur scale (what a camera file's ``psf_sigma_scale`` holds); 1 without one."""
+        return self.sigma_scale[self.family] if self.family is not None else 1.0
+
     def summary(self) -> dict[str, Any]:
         """JSON-ready numbers for a camera file's calibration provenance."""
         return {"family": self.family, "cost_ratio": self.cost_ratio, "costs": dict(self.costs),
@@ -114,13 +120,6 @@ def _regions(shape: tuple[int, int], region: int) -> list[Roi]:
     rois = [Roi(x0 + j * region, y0 + i * region, region, region) for i in range(ny) for j in range(nx)]
     rois.sort(key=lambda r: (r.x + r.w / 2 - w / 2) ** 2 + (r.y + r.h / 2 - h / 2) ** 2)
     return rois[:MAX_FAMILY_REGIONS]
-
-
-def _thinned(frames: list, n: int) -> list:
-    """At most ``n`` of ``frames`` (sorted by power), evenly spread, both ends kept."""
-    if len(frames) <= n:
-        return frames
-    return [frames[int(round(k * (len(frames) - 1) / (n - 1)))] for k in range(n)]
 
 
 def _fit_scale(search: Any, roi: Roi, family: str, frames: list, m: float) -> float:
@@ -147,8 +146,8 @@ def psf_family_from_frames(scenes: Sequence[Sequence[tuple[np.ndarray, float]]],
         scenes: per scene, its frames ``(image (H, W), power_dpt)`` at known (commanded) powers,
             all of one shape; a scene with fewer than :data:`MIN_FAMILY_FRAMES` distinct powers
             is left out, one with more than :data:`MAX_FAMILY_FRAMES` thinned evenly.
-        camera: the calibrated camera (its ``M``, px of Gaussian sigma per dpt, and working
-            powers: the span the in-focus power is searched over).
+        camera: the calibrated camera (its ``M``, px of Gaussian sigma per dpt; the in-focus
+            power is searched over each scene's own span of powers).
         region: side (px) of the square regions searched (at least 32).
         magnification_per_dpt: the lens's focus breathing, undone before the search.
         min_ratio: how many times better the named family must fit (at least 1).
@@ -171,9 +170,9 @@ def psf_family_from_frames(scenes: Sequence[Sequence[tuple[np.ndarray, float]]],
                      MIN_FAMILY_FRAMES)
             continue
         shapes = {im.shape for im in by_power.values()}
-        if len(shapes) != 1 or next(iter(shapes)).__len__() != 2:
+        if len(shapes) != 1 or len(next(iter(shapes))) != 2:
             raise InputError(f"scene {k}: frames must be (H, W) of one shape, got {sorted(shapes)}")
-        usable.append(_thinned(sorted(by_power.items()), MAX_FAMILY_FRAMES))
+        usable.append(evenly_thinned(sorted(by_power.items()), MAX_FAMILY_FRAMES))
     if not usable:
         raise InputError(f"the PSF family needs a scene with at least {MIN_FAMILY_FRAMES} frames at distinct powers")
     costs = {f: 0.0 for f in PSF_FAMILIES}
@@ -212,8 +211,8 @@ def psf_family_from_frames(scenes: Sequence[Sequence[tuple[np.ndarray, float]]],
                 powers[f].append(fit.power_dpt)
             votes[min(fits, key=lambda f: fits[f].cost)] += 1
     if not searched:
-        log.warning("no region of the captures has its in-focus power inside the camera's working powers: "
-                    "PSF family not measured")
+        log.warning("no region of the captures has its in-focus power inside its scene's span of powers (a "
+                    "sweep must bracket focus): PSF family not measured")
         return PsfFamilyFit(None, math.nan, costs, 0, votes, {}, {})
     best, other = sorted(PSF_FAMILIES, key=lambda f: costs[f])
     ratio = costs[other] / max(costs[best], 1e-300)
@@ -234,8 +233,6 @@ def psf_family_from_captures(frames: Sequence[Any], camera_file: Any, region: in
     Raises:
         InputError: as :func:`psf_family_from_frames` (no scene with three powers, ...).
     """
-    from .fit import group_scenes
-
     scenes = []
     for s in group_scenes(frames):
         members = list(s.sweep) + [f for pair in s.pairs for f in pair]
@@ -243,4 +240,5 @@ def psf_family_from_captures(frames: Sequence[Any], camera_file: Any, region: in
     smallest = min((min(im.shape) for sc in scenes for im, _ in sc), default=region)
     region = min(region, smallest // 32 * 32)
     return psf_family_from_frames(scenes, camera_file.camera, region=region,
-                                  magnification_per_dpt=camera_file.magnification_per_dpt, min_ratio=min_ratio)
+                                  magnification_per_dpt=camera_file.magnification_per_dpt, min_ratio=min_ratio,
+                                  fixed_gaussian_scale=fixed_gaussian_scale)
