@@ -33,6 +33,7 @@ BENCHMARKS = {
     "camera_pairs": "benchmarks.bench_camera_pairs",
     "breathing": "benchmarks.bench_breathing",
     "calibrated_af": "benchmarks.bench_calibrated_af",
+    "psf_family": "benchmarks.bench_psf_family",
 }
 
 
