@@ -20,20 +20,15 @@ __all__ = ["make_test_model", "session_onnx_model"]
 
 def make_test_model(seed: int = 0, tile: int = 64, stride: int = 32) -> torch.nn.Module:
     """A :class:`tdfd.model.DFDModel` for the reference camera with a random, non-zero
-    refinement head (so ``depth`` differs from ``depth_analytic`` and the CNN is exercised)
-    and global-context blocks whose (zero-initialised) outputs are random too."""
-    from tdfd.model import DFDModel, GlobalContextBlock
+    refinement head (so ``depth`` differs from ``depth_analytic`` and the CNN is exercised)."""
+    from tdfd.model import DFDModel
 
     with torch.random.fork_rng():
         torch.manual_seed(seed)
-        model = DFDModel(Camera.preset("reference"), tile=tile, stride=stride, global_context=True)
+        model = DFDModel(Camera.preset("reference"), tile=tile, stride=stride)
         with torch.no_grad():
             for p in model.refine.head.parameters():
                 p.normal_(0.0, 0.05)
-            for block in model.refine.blocks:
-                if isinstance(block, GlobalContextBlock):
-                    for p in block.out.parameters():
-                        p.normal_(0.0, 0.05)
     return model.eval()
 
 

@@ -10,7 +10,7 @@ import torch
 from tdfd import Camera
 from tdfd.dfd import FourierRatioDFD
 from tdfd.errors import InputError, ModelError, RangeError, ShapeError
-from tdfd.model import DFDModel, GlobalContextBlock, RefineNet, num_features
+from tdfd.model import DFDModel, RefineNet, num_features
 from tdfd.optics import render_pair
 
 REF = Camera.preset("reference")
@@ -218,68 +218,3 @@ def test_constructor_errors():
         DFDModel(REF, bogus=3)
     with pytest.raises(InputError):
         DFDModel(REF, confidence_scale=0)
-
-
-def _randomise(module, std=0.3, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in module.parameters():
-            p.copy_(std * torch.randn(p.shape, generator=g))
-    return module
-
-
-def test_global_context_block_is_identity_when_fresh_and_pools_per_image():
-    block = GlobalContextBlock(4)
-    x = torch.randn(2, 4, 3, 5, generator=torch.Generator().manual_seed(1))
-    assert torch.equal(block(x), x)  # zero-initialised output: a fresh block changes nothing
-    _randomise(block)
-    y = block(x)
-    # every tile of an image gets the same context: y - x is constant over (h, w)
-    delta = y - x
-    torch.testing.assert_close(delta, delta[:, :, :1, :1].expand_as(delta))
-    # per image, never across the batch: changing image 1 leaves image 0 alone
-    x2 = x.clone()
-    x2[1] += 5.0
-    torch.testing.assert_close(block(x2)[0], y[0], rtol=0, atol=0)
-    assert not torch.allclose(block(x2)[1], y[1])
-
-
-def test_global_context_block_weights_leave_out_tiles():
-    """A tile whose pooling weight is ~0 does not move the context, whatever its values."""
-    block = _randomise(GlobalContextBlock(3))
-    with torch.no_grad():  # weight = sigmoid(50 * act(channel 0)): ~0 where channel 0 is very negative
-        block.weight.weight.zero_()
-        block.weight.weight[0, 0] = 50.0
-        block.weight.bias.fill_(0.0)
-    x = torch.randn(1, 3, 2, 3, generator=torch.Generator().manual_seed(2)).abs() + 1.0
-    x[0, 0, 1, 2] = -1.278  # at SiLU's minimum (-0.278): weight sigmoid(-13.9) ~ 1e-6; the others ~ 1
-    y = block(x)
-    x2 = x.clone()
-    x2[0, 1:, 1, 2] += 100.0  # the excluded tile's other channels change wildly
-    torch.testing.assert_close((block(x2) - x2)[0, :, 0, 0], (y - x)[0, :, 0, 0], rtol=0, atol=1e-3)
-    x3 = x.clone()
-    x3[0, 1:, 0, 0] += 100.0  # an included tile's change moves every tile's context
-    assert not torch.allclose((block(x3) - x3)[0, :, 1, 2], (y - x)[0, :, 1, 2], atol=1e-2)
-
-
-def test_refinenet_global_context_reaches_every_tile_and_round_trips(tmp_path):
-    local = _randomise(RefineNet(5, hidden=6, blocks=1, kernel_size=3))
-    glob = _randomise(RefineNet(5, hidden=6, blocks=1, kernel_size=3, global_context=True))
-    assert len(glob.blocks) == 2 and isinstance(glob.blocks[1], GlobalContextBlock)
-    x = torch.randn(1, 5, 6, 7, generator=torch.Generator().manual_seed(3))
-    far = x.clone()
-    far[0, :, 5, 6] += 3.0  # a tile far outside a 3x3 block's reach of tile (0, 0)
-    torch.testing.assert_close(local(far)[0, :, 0, 0], local(x)[0, :, 0, 0], rtol=0, atol=0)
-    assert not torch.allclose(glob(far)[0, :, 0, 0], glob(x)[0, :, 0, 0])
-    assert glob.config()["global_context"] is True and local.config()["global_context"] is False
-    with pytest.raises(InputError, match="global_context"):
-        RefineNet(5, global_context="yes")
-    # persistence: the flag travels in the JSON side file and the weights load back
-    torch.manual_seed(4)
-    model = DFDModel(REF, tile=32, stride=16, hidden=8, blocks=1, global_context=True)
-    _randomise(model.refine.blocks[1])
-    model.save(tmp_path / "m")
-    back = DFDModel.load(tmp_path / "m")
-    assert back.config()["refine"]["global_context"] is True
-    i1, i2 = _pair(1, 96, 112)
-    torch.testing.assert_close(back(i1, i2)[0], model(i1, i2)[0], rtol=0, atol=0)

@@ -84,9 +84,6 @@ class ModelConfig:
     blocks: int = 2
     kernel_size: int = 3
     dilation_base: int = 1
-    #: follow each residual block with a global-context block (a weighted mean over all
-    #: the image's tiles: what they share, such as the PSF shape)
-    global_context: bool = False
     confidence_scale: float = 0.01
     correction_scale: float = 1.0
     #: sides (odd, in tiles) of the neighbourhoods whose pooled fits are extra features

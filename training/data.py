@@ -47,8 +47,7 @@ def build_model(mcfg: ModelConfig) -> DFDModel:
     camera = resolve_camera(mcfg.camera)
     return DFDModel(camera, tile=mcfg.tile, stride=mcfg.stride, confidence_scale=mcfg.confidence_scale,
                     correction_scale=mcfg.correction_scale, hidden=mcfg.hidden, blocks=mcfg.blocks,
-                    kernel_size=mcfg.kernel_size, dilation_base=mcfg.dilation_base, context=mcfg.context,
-                    global_context=mcfg.global_context)
+                    kernel_size=mcfg.kernel_size, dilation_base=mcfg.dilation_base, context=mcfg.context)
 
 
 def make_dataset(dcfg: DataConfig, mcfg: ModelConfig, seed: int, height: int | None = None,

@@ -5,7 +5,7 @@ export turns into ONNX.
 """
 
 from .combined import MODEL_FORMAT, DFDModel, RefinedResult, context_sizes, num_features, pool_measurements, tile_features
-from .refine import GlobalContextBlock, RefineNet, ResidualBlock
+from .refine import RefineNet, ResidualBlock
 
-__all__ = ["DFDModel", "RefinedResult", "RefineNet", "ResidualBlock", "GlobalContextBlock", "tile_features", "num_features", "context_sizes",
+__all__ = ["DFDModel", "RefinedResult", "RefineNet", "ResidualBlock", "tile_features", "num_features", "context_sizes",
            "pool_measurements", "MODEL_FORMAT"]

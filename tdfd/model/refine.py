@@ -5,16 +5,8 @@
 correction of the analytic inverse depth in dioptres and a log-scale correction of the
 predicted relative error. It is a pointwise (1x1) stem, a few residual blocks of 3x3
 convolutions over neighbouring tiles (replicate padding, so any ``h, w >= 1`` works and
-border tiles see the same statistics as interior ones), optionally each followed by a
-global-context block (:class:`GlobalContextBlock`: a learnt, weighted mean over all the
-image's tiles, added back to every tile), and a 1x1 head initialised to zero, so an
-untrained network leaves the analytic estimate unchanged.
-
-The global context is there for what every tile of an image shares and no tile alone
-can tell: the lens's PSF shape. With the PSF unknown but common to the image, the
-information bound per tile is close to the PSF-known one (benchmarks/bench_bound.py,
-"PSF shared by the image"); a tile-local network cannot reach it, as most of its error on
-a plane is the part that all the plane's tiles share.
+border tiles see the same statistics as interior ones), and a 1x1 head initialised to
+zero, so an untrained network leaves the analytic estimate unchanged.
 
 Inputs are standardised with fixed per-channel buffers (``feature_mean``,
 ``feature_std``) that training fits once on synthetic data and that are saved with the
@@ -38,7 +30,7 @@ from torch import nn
 
 from ..errors import InputError, ShapeError
 
-__all__ = ["RefineNet", "ResidualBlock", "GlobalContextBlock"]
+__all__ = ["RefineNet", "ResidualBlock"]
 
 
 class ResidualBlock(nn.Module):
@@ -68,44 +60,6 @@ class ResidualBlock(nn.Module):
         return x + self.conv2(self.act(self.conv1(y)))
 
 
-class GlobalContextBlock(nn.Module):
-    """``x + out(act(pooled))``: a learnt, weighted mean over all tiles, broadcast back.
-
-    Each tile gets a pooling weight ``sigmoid(w(act(x)))`` in ``(0, 1)`` (so texture-less
-    or dark tiles can be left out) and a value ``v(act(x))``; ``pooled`` is the weighted
-    mean of the values over the image's ``h x w`` tiles (per image, never across the batch).
-    The output convolution starts at zero, so a fresh block is the identity.
-
-    Args:
-        channels: feature channels.
-
-    Shape:
-        ``(B, C, h, w)`` to ``(B, C, h, w)``, any ``h, w >= 1``.
-
-    Example:
-        >>> import torch
-        >>> block = GlobalContextBlock(4)
-        >>> x = torch.randn(2, 4, 3, 5)
-        >>> bool(torch.equal(block(x), x))
-        True
-    """
-
-    def __init__(self, channels: int) -> None:
-        super().__init__()
-        self.weight = nn.Conv2d(channels, 1, 1)
-        self.value = nn.Conv2d(channels, channels, 1)
-        self.out = nn.Conv2d(channels, channels, 1)
-        self.act = nn.SiLU()
-        nn.init.zeros_(self.out.weight)
-        nn.init.zeros_(self.out.bias)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = self.act(x)
-        w = torch.sigmoid(self.weight(y))
-        pooled = (w * self.value(y)).sum((2, 3), keepdim=True) / w.sum((2, 3), keepdim=True).clamp_min(1e-6)
-        return x + self.out(self.act(pooled))
-
-
 class RefineNet(nn.Module):
     """Small fully convolutional refinement network on the tile grid.
 
@@ -117,7 +71,6 @@ class RefineNet(nn.Module):
         dilation_base: block ``i`` has dilation ``dilation_base ** i`` (1: none; 2: 1, 2, 4, ...),
             which widens the receptive field at no extra cost.
         out_channels: output maps (2: inverse-depth correction, log-scale correction).
-        global_context: follow each residual block with a :class:`GlobalContextBlock`.
 
     Shape:
         - Input: ``(B, C, h, w)`` per-tile features, any ``h, w >= 1``.
@@ -125,7 +78,7 @@ class RefineNet(nn.Module):
     """
 
     def __init__(self, in_channels: int, hidden: int = 32, blocks: int = 2, kernel_size: int = 3,
-                 dilation_base: int = 1, out_channels: int = 2, global_context: bool = False) -> None:
+                 dilation_base: int = 1, out_channels: int = 2) -> None:
         super().__init__()
         if in_channels < 1 or hidden < 1 or blocks < 0 or out_channels < 1:
             raise InputError(f"invalid RefineNet sizes: in={in_channels}, hidden={hidden}, blocks={blocks}, out={out_channels}")
@@ -134,18 +87,10 @@ class RefineNet(nn.Module):
         if dilation_base < 1:
             raise InputError(f"dilation_base must be >= 1, got {dilation_base}")
         self.dilation_base = int(dilation_base)
-        if not isinstance(global_context, bool):
-            raise InputError(f"global_context must be true or false, got {global_context!r}")
-        self.global_context = global_context
         self.register_buffer("feature_mean", torch.zeros(1, in_channels, 1, 1))
         self.register_buffer("feature_std", torch.ones(1, in_channels, 1, 1))
         self.stem = nn.Conv2d(in_channels, hidden, 1)
-        layers: list[nn.Module] = []
-        for i in range(blocks):
-            layers.append(ResidualBlock(hidden, kernel_size, self.dilation_base**i))
-            if global_context:
-                layers.append(GlobalContextBlock(hidden))
-        self.blocks = nn.Sequential(*layers)
+        self.blocks = nn.Sequential(*[ResidualBlock(hidden, kernel_size, self.dilation_base**i) for i in range(blocks)])
         self.act = nn.SiLU()
         self.head = nn.Conv2d(hidden, out_channels, 1)
         nn.init.zeros_(self.head.weight)
@@ -154,8 +99,7 @@ class RefineNet(nn.Module):
     def config(self) -> dict:
         """Constructor arguments (JSON-serialisable)."""
         return {"in_channels": self.in_channels, "hidden": self.hidden, "blocks": self.blocks_n,
-                "kernel_size": self.kernel_size, "dilation_base": self.dilation_base, "out_channels": self.out_channels,
-                "global_context": self.global_context}
+                "kernel_size": self.kernel_size, "dilation_base": self.dilation_base, "out_channels": self.out_channels}
 
     @torch.no_grad()
     def set_normaliser(self, mean: torch.Tensor, std: torch.Tensor) -> None:
