@@ -1,0 +1,84 @@
+"""Where the refined paper-experiment estimate loses to the analytic one: tile by tile.
+
+The paper experiment (:mod:`benchmarks.paper_experiment`, reference camera) compares the
+one-region analytic estimate with the model's lit tiles pooled as the autofocus pools them.
+This diagnosis looks inside the pooling: over the tiles that it uses (a cue in the lit pair,
+``pair_cue_mask``, and confidence >= ``CONFIDENT_TILE``), the median signed error of the
+model's refined depth and of the same model's analytic depth (the ``depth_analytic``
+output: the Fourier-ratio fit of the same 64-px tile, before the CNN). A refined median
+farther from zero than the analytic one is a bias that the CNN adds.
+
+Run from the repository root::
+
+    .venv/bin/python -m benchmarks.paper_tiles [--model models/reference.onnx] [--repeats 3]
+
+It prints a table (ad-hoc diagnosis; it writes nothing to docs/BENCHMARKS.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import statistics
+
+import numpy as np
+import torch
+
+from tdfd import Camera
+from tdfd.autofocus.lit_tiles import CONFIDENT_TILE, pair_cue_mask, pool_lit_tiles
+from tdfd.illumination import CoherentIllumination, ProjectorIllumination
+from tdfd.runtime import DepthRuntime
+from tdfd.sensor import SensorModel
+
+from .paper_experiment import DISTANCES_CM, capture
+from .report import ROOT, machine, markdown_table
+
+log = logging.getLogger(__name__)
+
+
+def tile_errors(rt: DepthRuntime, i1: torch.Tensor, i2: torch.Tensor, depth_m: float) -> tuple[float, float, float, int]:
+    """``(pooled, median refined, median analytic, tiles)``: signed errors in % over the pooled tiles."""
+    a, b = i1[0, 0].numpy(), i2[0, 0].numpy()
+    r = rt(a, b)
+    grid = np.shape(r.depth)[-2:]
+    depth = np.asarray(r.depth, np.float64).reshape(grid)
+    conf = np.asarray(r.confidence, np.float64).reshape(grid)
+    analytic = np.asarray(r.depth_analytic, np.float64).reshape(grid)
+    agg, used = pool_lit_tiles(depth, conf, pair_cue_mask(a, b, rt.tile, rt.stride))
+    used = used & (conf >= CONFIDENT_TILE)
+    if not used.any():
+        return float("nan"), float("nan"), float("nan"), 0
+    err = lambda d: 100.0 * (d - depth_m) / depth_m  # noqa: E731
+    return err(agg.depth_m), float(np.median(err(depth[used]))), float(np.median(err(analytic[used]))), int(used.sum())
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.paper_tiles", description=__doc__.split("\n\n")[0])
+    p.add_argument("--model", default=str(ROOT / "models" / "reference.onnx"), help="ONNX model")
+    p.add_argument("--repeats", type=int, default=3, help="noisy captures per distance (median)")
+    p.add_argument("--seed", type=int, default=5)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    camera = Camera.preset("reference")
+    sensor = SensorModel(full_well_e=20000.0, read_noise_e=3.0, bits=12, black_level_dn=64.0, exposure=0.8)
+    rt = DepthRuntime(args.model)
+    g = torch.Generator().manual_seed(args.seed)
+    rows = []
+    for name, source in {"coherent": CoherentIllumination(), "projector": ProjectorIllumination()}.items():
+        for dcm in DISTANCES_CM:
+            runs = [tile_errors(rt, *capture(camera, source, dcm / 100, (512, 512), g, sensor), dcm / 100)
+                    for _ in range(args.repeats)]
+            kept = [r for r in runs if r[3] > 0]
+            if not kept:
+                rows.append([name, f"{dcm:g}", "-", "-", "-", 0])
+                continue
+            med = [statistics.median(r[k] for r in kept) for k in range(3)]
+            rows.append([name, f"{dcm:g}", f"{med[0]:+.2f}", f"{med[1]:+.2f}", f"{med[2]:+.2f}",
+                         int(statistics.median(r[3] for r in kept))])
+    table = markdown_table(["light", "distance (cm)", "pooled refined %", "tiles: median refined %",
+                            "tiles: median analytic (same tiles) %", "tiles used"], rows)
+    print(f"{machine()}\nmodel {args.model}, median of {args.repeats} captures\n\n{table}")
+
+
+if __name__ == "__main__":
+    main()
