@@ -10,7 +10,7 @@ farther from zero than the analytic one is a bias that the CNN adds.
 
 Run from the repository root::
 
-    .venv/bin/python -m benchmarks.paper_tiles [--model models/reference.onnx] [--repeats 3]
+    .venv/bin/python -m benchmarks.paper_tiles [--model models/reference.onnx] [--repeats 3] [--optics pillbox]
 
 It prints a table (ad-hoc diagnosis; it writes nothing to docs/BENCHMARKS.md).
 """
@@ -57,6 +57,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--model", default=str(ROOT / "models" / "reference.onnx"), help="ONNX model")
     p.add_argument("--repeats", type=int, default=3, help="noisy captures per distance (median)")
     p.add_argument("--seed", type=int, default=5)
+    p.add_argument("--optics", choices=("gaussian", "pillbox"), default="gaussian",
+                   help="simulated PSF shape (as benchmarks.paper_experiment; default gaussian)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     camera = Camera.preset("reference")
@@ -66,7 +68,8 @@ def main(argv: list[str] | None = None) -> None:
     rows = []
     for name, source in {"coherent": CoherentIllumination(), "projector": ProjectorIllumination()}.items():
         for dcm in DISTANCES_CM:
-            runs = [tile_errors(rt, *capture(camera, source, dcm / 100, (512, 512), g, sensor), dcm / 100)
+            runs = [tile_errors(rt, *capture(camera, source, dcm / 100, (512, 512), g, sensor, args.optics),
+                                dcm / 100)
                     for _ in range(args.repeats)]
             kept = [r for r in runs if r[3] > 0]
             if not kept:
@@ -77,7 +80,7 @@ def main(argv: list[str] | None = None) -> None:
                          int(statistics.median(r[3] for r in kept))])
     table = markdown_table(["light", "distance (cm)", "pooled refined %", "tiles: median refined %",
                             "tiles: median analytic (same tiles) %", "tiles used"], rows)
-    print(f"{machine()}\nmodel {args.model}, median of {args.repeats} captures\n\n{table}")
+    print(f"{machine()}\nmodel {args.model}, {args.optics} optics, median of {args.repeats} captures\n\n{table}")
 
 
 if __name__ == "__main__":
