@@ -210,6 +210,9 @@ def main(argv: list[str] | None = None) -> int:
                       options={"ambient_frame": True}) for light in ("coherent", "projector")}
     sub = {light: run(f"reference_uniform_{light}_subtracted", est, depths, light, True, subtract=True)
            for light in ("coherent", "projector")}
+    # a disk (pillbox) lens: the same targets and lights through the other PSF family
+    disk = {light or "none": run(f"reference_uniform_{light or 'none'}_pillbox", est, depths, light, True,
+                                 bench_kwargs={"psf": "pillbox"}) for light in ("coherent", "projector", None)}
     paper = {}
     if n_paper > 0:
         # the paper camera binned 4x (as benchmarks/paper_experiment.py does): its whole sensor is the
@@ -229,6 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     rows += [row("reference", f"texture-less, {n}", f"{k}, ambient frame taken", summarise(v)) for k, v in amb.items()]
     rows += [row("reference", f"texture-less, {n}", f"{k}, ambient frame subtracted", summarise(v))
              for k, v in sub.items()]
+    rows += [row("reference, disk (pillbox) optics", f"texture-less, {n}", k, summarise(v)) for k, v in disk.items()]
     rows += [row(f"paper, 4x binned (analytic, {PAPER_TILE}-px tiles)", f"texture-less, {n_paper}", k, summarise(v))
              for k, v in paper.items()]
     rows += [row("reference", f"textured, {n_tex}", k, summarise(v)) for k, v in tex.items()]
@@ -254,6 +258,10 @@ def main(argv: list[str] | None = None) -> int:
         f"pay for its frame: the controller's default takes no ambient frame (`ambient_frame` is only implied by "
         f"`--subtract-ambient`).",
     ]
+    s_dc = summarise(disk["coherent"])
+    checks.append(f"- The same texture-less targets through a disk (pillbox) lens, the controller not told the "
+                  f"family: coherent {s_dc['in_focus']}/{s_dc['n']} in focus, {s_dc['in_focus_3']}/{s_dc['n']} with "
+                  f"<= 3 frames; declared out of focus {s_dc['wrong']}.")
     if paper:
         s_pc = summarise(paper["coherent"])
         checks.append(f"- Paper camera (4x binned, analytic estimator): coherent {s_pc['in_focus']}/{s_pc['n']} in "
