@@ -32,8 +32,11 @@ from __future__ import annotations
 import argparse
 import logging
 import statistics
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import torch
 
 from tdfd import Camera
@@ -60,6 +63,20 @@ def paper_camera(binning: int = 4) -> Camera:
                        mu_px_per_m=1.0 / (2.0 * cam.pixel_pitch_m * binning), name=f"paper (binned {binning}x)")
 
 
+def paper_sensor() -> SensorModel:
+    """The experiment's sensor: 12-bit Poisson-Gaussian, 20 000 e- full well, 3 e- read noise."""
+    return SensorModel(full_well_e=20000.0, read_noise_e=3.0, bits=12, black_level_dn=64.0, exposure=0.8)
+
+
+def paper_sources() -> dict:
+    """The two illuminators compared: ``{"coherent": ..., "projector": ...}``."""
+    return {"coherent": CoherentIllumination(), "projector": ProjectorIllumination()}
+
+
+#: the reference camera's simulated field (px), one region covering the pattern
+REFERENCE_FIELD = (512, 512)
+
+
 def capture(camera: Camera, source, depth_m: float, size: tuple[int, int], generator: torch.Generator,
             sensor: SensorModel, optics: str = "gaussian") -> tuple[torch.Tensor, torch.Tensor]:
     """Noisy DFD pair of the black target at ``depth_m`` lit by ``source``.
@@ -79,8 +96,8 @@ def capture(camera: Camera, source, depth_m: float, size: tuple[int, int], gener
 def run_camera(camera: Camera, size: tuple[int, int], tile: int, max_bin: int, seed: int, repeats: int,
                refine=None, optics: str = "gaussian") -> dict[str, dict[float, list[float]]]:
     """Percentage depth errors per source and distance (``repeats`` noisy captures each)."""
-    sensor = SensorModel(full_well_e=20000.0, read_noise_e=3.0, bits=12, black_level_dn=64.0, exposure=0.8)
-    sources = {"coherent": CoherentIllumination(), "projector": ProjectorIllumination()}
+    sensor = paper_sensor()
+    sources = paper_sources()
     top, left = (size[0] - tile) // 2, (size[1] - tile) // 2
     crop = lambda im: im[..., top : top + tile, left : left + tile]  # noqa: E731
     g = torch.Generator().manual_seed(seed)
@@ -124,25 +141,45 @@ def onnx_refiner(model_path: Path):
     :data:`tdfd.autofocus.lit_tiles.CONFIDENT_TILE` the model has no opinion there and the
     one-region analytic estimate stands (``source = "region"``).
     """
-    import numpy as np
-
-    from tdfd.autofocus.lit_tiles import CONFIDENT_TILE, pair_cue_mask, pool_lit_tiles
+    from tdfd.autofocus.lit_tiles import CONFIDENT_TILE
     from tdfd.runtime import DepthRuntime  # imported lazily: optional
 
     rt = DepthRuntime(str(model_path))
 
     def refine(i1: torch.Tensor, i2: torch.Tensor, region_depth_m: float) -> tuple[float, str]:
-        a, b = i1[0, 0].numpy(), i2[0, 0].numpy()
-        r = rt(a, b)
-        depth = np.asarray(r.depth, np.float64).reshape(np.shape(r.depth)[-2:])
-        conf = np.asarray(r.confidence, np.float64).reshape(np.shape(r.confidence)[-2:])
-        lit = pair_cue_mask(a, b, rt.tile, rt.stride)
-        agg, used = pool_lit_tiles(depth, conf, lit)
-        if not used.any() or not float(conf[used].max()) >= CONFIDENT_TILE or not np.isfinite(agg.depth_m):
+        lit = lit_tile_depths(rt, i1, i2)
+        if not lit.used.any() or not float(lit.confidence[lit.used].max()) >= CONFIDENT_TILE \
+                or not np.isfinite(lit.pooled.depth_m):
             return region_depth_m, "region"
-        return agg.depth_m, "model"
+        return lit.pooled.depth_m, "model"
 
     return refine
+
+
+@dataclass
+class LitTileDepths:
+    """One lit pair through the model, on its tile grid ``(h, w)``: refined and analytic depth
+    (m), confidence, and the lit tiles' pooling (:func:`tdfd.autofocus.lit_tiles.pool_lit_tiles`)
+    with the mask of the tiles it used."""
+
+    depth: np.ndarray
+    analytic: np.ndarray
+    confidence: np.ndarray
+    pooled: Any
+    used: np.ndarray
+
+
+def lit_tile_depths(rt, i1: torch.Tensor, i2: torch.Tensor) -> LitTileDepths:
+    """Run ``rt`` (a :class:`tdfd.runtime.DepthRuntime`) on a ``(1, 1, H, W)`` lit pair and pool
+    the tiles with a cue in it (``pair_cue_mask``) as the autofocus pools them."""
+    from tdfd.autofocus.lit_tiles import pair_cue_mask, pool_lit_tiles
+
+    a, b = i1[0, 0].numpy(), i2[0, 0].numpy()
+    r = rt(a, b)
+    grid = np.shape(r.depth)[-2:]
+    depth, conf, analytic = (np.asarray(v, np.float64).reshape(grid) for v in (r.depth, r.confidence, r.depth_analytic))
+    pooled, used = pool_lit_tiles(depth, conf, pair_cue_mask(a, b, rt.tile, rt.stride))
+    return LitTileDepths(depth=depth, analytic=analytic, confidence=conf, pooled=pooled, used=used)
 
 
 def plot(results: dict[str, dict[str, dict[float, list[float]]]], path: Path) -> None:
@@ -225,7 +262,7 @@ def main(argv: list[str] | None = None) -> None:
                                                      repeats=args.repeats, optics=args.optics)
     ref = Camera.preset("reference")
     refine = onnx_refiner(args.model) if args.model.exists() else None
-    results["reference camera"] = run_camera(ref, (512, 512), tile=512, max_bin=64, seed=args.seed + 1,
+    results["reference camera"] = run_camera(ref, REFERENCE_FIELD, tile=REFERENCE_FIELD[0], max_bin=64, seed=args.seed + 1,
                                              repeats=args.repeats, refine=refine, optics=args.optics)
     if not args.no_write:  # --no-write leaves docs/ (the figure included) alone
         plot(results, FIGURE)

@@ -18,38 +18,28 @@ It prints a table (ad-hoc diagnosis; it writes nothing to docs/BENCHMARKS.md).
 from __future__ import annotations
 
 import argparse
-import logging
 import statistics
 
 import numpy as np
 import torch
 
 from tdfd import Camera
-from tdfd.autofocus.lit_tiles import CONFIDENT_TILE, pair_cue_mask, pool_lit_tiles
-from tdfd.illumination import CoherentIllumination, ProjectorIllumination
+from tdfd.autofocus.lit_tiles import CONFIDENT_TILE
 from tdfd.runtime import DepthRuntime
-from tdfd.sensor import SensorModel
 
-from .paper_experiment import DISTANCES_CM, capture
+from .paper_experiment import DISTANCES_CM, REFERENCE_FIELD, capture, lit_tile_depths, paper_sensor, paper_sources
 from .report import ROOT, machine, markdown_table
-
-log = logging.getLogger(__name__)
 
 
 def tile_errors(rt: DepthRuntime, i1: torch.Tensor, i2: torch.Tensor, depth_m: float) -> tuple[float, float, float, int]:
     """``(pooled, median refined, median analytic, tiles)``: signed errors in % over the pooled tiles."""
-    a, b = i1[0, 0].numpy(), i2[0, 0].numpy()
-    r = rt(a, b)
-    grid = np.shape(r.depth)[-2:]
-    depth = np.asarray(r.depth, np.float64).reshape(grid)
-    conf = np.asarray(r.confidence, np.float64).reshape(grid)
-    analytic = np.asarray(r.depth_analytic, np.float64).reshape(grid)
-    agg, used = pool_lit_tiles(depth, conf, pair_cue_mask(a, b, rt.tile, rt.stride))
-    used = used & (conf >= CONFIDENT_TILE)
+    lit = lit_tile_depths(rt, i1, i2)
+    used = lit.used & (lit.confidence >= CONFIDENT_TILE)
     if not used.any():
         return float("nan"), float("nan"), float("nan"), 0
     err = lambda d: 100.0 * (d - depth_m) / depth_m  # noqa: E731
-    return err(agg.depth_m), float(np.median(err(depth[used]))), float(np.median(err(analytic[used]))), int(used.sum())
+    return (err(lit.pooled.depth_m), float(np.median(err(lit.depth[used]))), float(np.median(err(lit.analytic[used]))),
+            int(used.sum()))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -60,15 +50,14 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--optics", choices=("gaussian", "pillbox"), default="gaussian",
                    help="simulated PSF shape (as benchmarks.paper_experiment; default gaussian)")
     args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
     camera = Camera.preset("reference")
-    sensor = SensorModel(full_well_e=20000.0, read_noise_e=3.0, bits=12, black_level_dn=64.0, exposure=0.8)
+    sensor = paper_sensor()
     rt = DepthRuntime(args.model)
     g = torch.Generator().manual_seed(args.seed)
     rows = []
-    for name, source in {"coherent": CoherentIllumination(), "projector": ProjectorIllumination()}.items():
+    for name, source in paper_sources().items():
         for dcm in DISTANCES_CM:
-            runs = [tile_errors(rt, *capture(camera, source, dcm / 100, (512, 512), g, sensor, args.optics),
+            runs = [tile_errors(rt, *capture(camera, source, dcm / 100, REFERENCE_FIELD, g, sensor, args.optics),
                                 dcm / 100)
                     for _ in range(args.repeats)]
             kept = [r for r in runs if r[3] > 0]

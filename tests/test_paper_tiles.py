@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from benchmarks.paper_experiment import capture
+from benchmarks.paper_experiment import REFERENCE_FIELD, capture, paper_sensor
 from benchmarks.paper_tiles import tile_errors
 from export import export_model
 from export.standin import analytic_model
@@ -15,15 +15,13 @@ from export.testing import session_onnx_model
 from tdfd import Camera
 from tdfd.illumination import CoherentIllumination
 from tdfd.runtime import DepthRuntime
-from tdfd.sensor import SensorModel
 
 REF = Camera.preset("reference")
-SENSOR = SensorModel(full_well_e=20000.0, read_noise_e=3.0, bits=12, black_level_dn=64.0, exposure=0.8)
 
 
 @pytest.fixture(scope="module")
 def lit_pair():
-    return capture(REF, CoherentIllumination(), 0.40, (512, 512), torch.Generator().manual_seed(0), SENSOR)
+    return capture(REF, CoherentIllumination(), 0.40, REFERENCE_FIELD, torch.Generator().manual_seed(0), paper_sensor())
 
 
 def test_without_a_cnn_refined_and_analytic_tiles_agree(tmp_path, lit_pair):
