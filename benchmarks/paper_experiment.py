@@ -131,7 +131,17 @@ def run_camera(camera: Camera, size: tuple[int, int], tile: int, max_bin: int, s
     return out
 
 
-def onnx_refiner(model_path: Path):
+#: ``--psf-family`` choices of the paper benchmarks (``optics``: the simulated optics' own family).
+PSF_FAMILY_CHOICES = ("optics", "gaussian", "pillbox", "unknown", "exported")
+
+
+def told_family(choice: str, optics: str) -> str | None:
+    """The family ``--psf-family choice`` tells the model with ``optics`` simulated
+    (``"exported"`` passes through; ``"unknown"``: ``None``)."""
+    return optics if choice == "optics" else None if choice == "unknown" else choice
+
+
+def onnx_refiner(model_path: Path, psf_family: str | None = "exported"):
     """The region's depth from the shipped ONNX model, pooled over the lit tiles as the autofocus pools them.
 
     The tiles with a cue in the lit pair (:func:`tdfd.autofocus.lit_tiles.pair_cue_mask`: the
@@ -139,12 +149,13 @@ def onnx_refiner(model_path: Path):
     :func:`tdfd.autofocus.lit_tiles.pool_lit_tiles` (the assist policy's pooling: a
     confidence-weighted median and trimmed mean of inverse depth). When no lit tile reaches
     :data:`tdfd.autofocus.lit_tiles.CONFIDENT_TILE` the model has no opinion there and the
-    one-region analytic estimate stands (``source = "region"``).
+    one-region analytic estimate stands (``source = "region"``). ``psf_family``: what the
+    model's CNN is told (:class:`tdfd.runtime.DepthRuntime`; ``"exported"``: the file's own).
     """
     from tdfd.autofocus.lit_tiles import CONFIDENT_TILE
     from tdfd.runtime import DepthRuntime  # imported lazily: optional
 
-    rt = DepthRuntime(str(model_path))
+    rt = DepthRuntime(str(model_path), psf_family=psf_family)
 
     def refine(i1: torch.Tensor, i2: torch.Tensor, region_depth_m: float) -> tuple[float, str]:
         lit = lit_tile_depths(rt, i1, i2)
@@ -249,6 +260,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "reference.onnx")
     ap.add_argument("--optics", choices=["gaussian", "pillbox"], default="gaussian",
                     help="simulated PSF shape (the estimator assumes a Gaussian)")
+    ap.add_argument("--psf-family", choices=PSF_FAMILY_CHOICES, default="optics",
+                    help="the PSF family the model's CNN is told: 'optics' (default: the simulated optics' own, as "
+                         "'tdfd calibrate' measures it), gaussian, pillbox, unknown, or 'exported' (the file's own; "
+                         "for a model without the family input)")
     ap.add_argument("--threads", type=int, default=2, help="torch threads (1 on a loaded machine)")
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
@@ -261,7 +276,8 @@ def main(argv: list[str] | None = None) -> None:
     results["paper camera (4x binned)"] = run_camera(pc, (640, 640), tile=576, max_bin=48, seed=args.seed,
                                                      repeats=args.repeats, optics=args.optics)
     ref = Camera.preset("reference")
-    refine = onnx_refiner(args.model) if args.model.exists() else None
+    told = told_family(args.psf_family, args.optics)
+    refine = onnx_refiner(args.model, told) if args.model.exists() else None
     results["reference camera"] = run_camera(ref, REFERENCE_FIELD, tile=REFERENCE_FIELD[0], max_bin=64, seed=args.seed + 1,
                                              repeats=args.repeats, refine=refine, optics=args.optics)
     if not args.no_write:  # --no-write leaves docs/ (the figure included) alone
@@ -301,6 +317,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{cam_name}: mu = {mu:.4g}\n{table}\n{summary}\n")
     body = (
         f"Black target (albedo 0.08, ambient 0.05) lit by the paper's two-stripe mask; {args.optics} optics\n"
+        f"(the model's CNN told the PSF family: {told or 'unknown'}; --psf-family {args.psf_family})\n"
         "(RMS radius r_b / 2), 12-bit Poisson-Gaussian sensor (20 000 e- full well, 3 e- read\n"
         f"noise); mu calibrated from the coherent pair at {CALIBRATION_CM:.0f} cm; one region covering the\n"
         f"pattern; median of {args.repeats} noisy captures per distance.\n\n"

@@ -11,6 +11,7 @@ farther from zero than the analytic one is a bias that the CNN adds.
 Run from the repository root::
 
     .venv/bin/python -m benchmarks.paper_tiles [--model models/reference.onnx] [--repeats 3] [--optics pillbox]
+        [--psf-family optics|gaussian|pillbox|unknown|exported]
 
 It prints a table (ad-hoc diagnosis; it writes nothing to docs/BENCHMARKS.md).
 """
@@ -27,7 +28,8 @@ from tdfd import Camera
 from tdfd.autofocus.lit_tiles import CONFIDENT_TILE
 from tdfd.runtime import DepthRuntime
 
-from .paper_experiment import DISTANCES_CM, REFERENCE_FIELD, capture, lit_tile_depths, paper_sensor, paper_sources
+from .paper_experiment import (DISTANCES_CM, PSF_FAMILY_CHOICES, REFERENCE_FIELD, capture, lit_tile_depths, paper_sensor,
+                               paper_sources, told_family)
 from .report import ROOT, machine, markdown_table
 
 
@@ -49,10 +51,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seed", type=int, default=5)
     p.add_argument("--optics", choices=("gaussian", "pillbox"), default="gaussian",
                    help="simulated PSF shape (as benchmarks.paper_experiment; default gaussian)")
+    p.add_argument("--psf-family", choices=PSF_FAMILY_CHOICES, default="optics",
+                   help="the PSF family the model's CNN is told (as benchmarks.paper_experiment; default: the optics')")
     args = p.parse_args(argv)
     camera = Camera.preset("reference")
     sensor = paper_sensor()
-    rt = DepthRuntime(args.model)
+    told = told_family(args.psf_family, args.optics)
+    rt = DepthRuntime(args.model, psf_family=told)
     g = torch.Generator().manual_seed(args.seed)
     rows = []
     for name, source in paper_sources().items():
@@ -69,7 +74,8 @@ def main(argv: list[str] | None = None) -> None:
                          int(statistics.median(r[3] for r in kept))])
     table = markdown_table(["light", "distance (cm)", "pooled refined %", "tiles: median refined %",
                             "tiles: median analytic (same tiles) %", "tiles used"], rows)
-    print(f"{machine()}\nmodel {args.model}, {args.optics} optics, median of {args.repeats} captures\n\n{table}")
+    print(f"{machine()}\nmodel {args.model} told {rt.psf_family or 'unknown'}, {args.optics} optics, median of "
+          f"{args.repeats} captures\n\n{table}")
 
 
 if __name__ == "__main__":

@@ -16,7 +16,11 @@ that camera's optics (a model is trained for one camera: ``python -m training --
 model.camera=FILE.json``), refused when it was not. The file's focus breathing
 (``magnification_per_dpt``) goes into the exported model: both frames are registered to a
 common scale before the estimator (:mod:`tdfd.registration`), and the ``tdfd.breathing``
-metadata records it.
+metadata records it. A model trained with the PSF family input (``model.psf_family_input``) is
+told the file's measured ``psf_family`` (``tdfd calibrate``; absent: unknown), baked in as
+the graph's code and recorded in ``tdfd.psf_family``; without ``--camera`` it exports the
+family it was saved with (the shipped model: unknown). ONNX Runtime can run the file told
+another family (``DepthRuntime(..., psf_family=...)``).
 """
 
 from __future__ import annotations
@@ -95,6 +99,12 @@ def main(argv: list[str] | None = None) -> int:
                                  f"python -m training --set model.camera={args.camera}")
             if camera_file is not None:
                 model.set_breathing(camera_file.magnification_per_dpt)
+                if model.psf_family_input:
+                    model.set_psf_family(camera_file.psf_family)
+                elif camera_file.psf_family is not None:
+                    logging.getLogger("export").warning(
+                        "%s names psf_family %r, but %s was trained without the PSF family input: not used",
+                        args.camera, camera_file.psf_family, args.weights)
         model.eval()
         t0 = time.perf_counter()
         path = export_model(model, args.out, opset=args.opset, optimize=not args.no_optimize)

@@ -39,9 +39,10 @@ from torch import nn
 
 import tdfd
 from tdfd.contract import (BREATHING_KEY, CAMERA_KEY, COVERAGE_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET, MODEL_KEY,
-                           OUTPUT_NAMES, VERSION_KEY)
+                           OUTPUT_NAMES, PSF_FAMILY_KEY, VERSION_KEY)
 from tdfd.coverage import camera_coverage
 from tdfd.errors import ModelError
+from tdfd.model.combined import PSF_FAMILY_INITIALIZER
 
 __all__ = ["INPUT_NAMES", "OUTPUT_NAMES", "METADATA_KEYS", "MIN_OPSET", "export_model", "onnx_metadata"]
 
@@ -68,7 +69,9 @@ def onnx_metadata(model: nn.Module) -> dict[str, str]:
     with a ``config()`` method (``DFDModel``) also gets ``tdfd.model``, its full description
     (informational). A model with a breathing registration (``model.registration``, a
     :class:`tdfd.registration.BreathingRegistration`) gets ``tdfd.breathing``:
-    ``{"magnification_per_dpt", "frame_scales"}`` (:data:`tdfd.contract.BREATHING_KEY`).
+    ``{"magnification_per_dpt", "frame_scales"}`` (:data:`tdfd.contract.BREATHING_KEY`). A model
+    with the PSF family input (``model.psf_family_input``) gets ``tdfd.psf_family``:
+    ``{"input": true, "family", "initializer"}`` (:data:`tdfd.contract.PSF_FAMILY_KEY`).
     """
     _check_model(model)
     meta = {
@@ -81,6 +84,9 @@ def onnx_metadata(model: nn.Module) -> dict[str, str]:
     if registration is not None:
         meta[BREATHING_KEY] = json.dumps({"magnification_per_dpt": float(registration.magnification_per_dpt),
                                           "frame_scales": [float(v) for v in registration.scales]})
+    if getattr(model, "psf_family_input", False):
+        meta[PSF_FAMILY_KEY] = json.dumps({"input": True, "family": model.psf_family,
+                                           "initializer": PSF_FAMILY_INITIALIZER})
     config = getattr(model, "config", None)
     if callable(config):
         try:

@@ -22,6 +22,7 @@ __all__ = [
     "MODEL_KEY",
     "COVERAGE_KEY",
     "BREATHING_KEY",
+    "PSF_FAMILY_KEY",
     "METADATA_KEYS",
     "MIN_OPSET",
     "DEFAULT_MODEL_ENV",
@@ -50,6 +51,12 @@ COVERAGE_KEY = "tdfd.coverage"
 #: inputs; a caller cutting an off-centre crop shifts it (:meth:`tdfd.runtime.DepthRuntime.__call__`,
 #: ``window=``). Absent: no registration (``m = 0``).
 BREATHING_KEY = "tdfd.breathing"
+#: Optional ``metadata_props`` key: the lens PSF family the refinement CNN is told,
+#: ``{"input": true, "family": "gaussian" | "pillbox" | null, "initializer": NAME}``. ``family`` is
+#: what the export baked in (``null``: unknown); ``initializer`` names the graph's ``(1, 2, 1, 1)``
+#: float32 code (``[1, 0]`` Gaussian, ``[0, 1]`` pillbox, zeros unknown), which ONNX Runtime may
+#: override (:class:`tdfd.runtime.DepthRuntime` ``psf_family``). Absent: the model has no family input.
+PSF_FAMILY_KEY = "tdfd.psf_family"
 #: The keys every exported file must carry, each value a JSON string.
 METADATA_KEYS: tuple[str, str, str] = (CAMERA_KEY, GRID_KEY, VERSION_KEY)
 #: Lowest ONNX opset the contract allows.

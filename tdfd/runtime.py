@@ -24,6 +24,11 @@ so the window's depths match those of the whole frame. ``optical_centre=(cy, cx)
 optical centre in the given frames' pixels when it is not their centre (a read-out window off
 the sensor's centre); default the frames' centre.
 
+PSF family: a model trained with the lens's PSF family as a CNN input carries the
+``tdfd.psf_family`` metadata (:data:`tdfd.contract.PSF_FAMILY_KEY`); ``psf_family="pillbox"``
+(or ``"gaussian"``, ``"unknown"``) runs the same file told that family
+(:mod:`tdfd.runtime_psf_family`); the default keeps the family baked in at export.
+
 Full-resolution resampling (``full_resolution=True``) interpolates the tile grid
 bilinearly with each tile's value placed at its centre, pixel
 ``(i * stride + (tile - 1) / 2, j * stride + (tile - 1) / 2)``; pixels outside the outermost
@@ -58,6 +63,7 @@ from .contract import (BREATHING_KEY, CAMERA_KEY, COVERAGE_KEY, DEFAULT_MODEL_EN
 from .camera_file import resolve_camera_file
 from .coverage import check_coverage
 from .errors import DTypeError, InputError, ModelError, ShapeError
+from .runtime_psf_family import EXPORTED, code_array, read_psf_family, requested_family
 from .frames import raw_to_linear
 from .pair_check import pair_problem
 
@@ -300,8 +306,11 @@ DEFAULT_OPTIMIZATION = "extended"
 
 
 def make_session(model_path: str | os.PathLike, threads: int = 2, optimization: str = DEFAULT_OPTIMIZATION,
-                 providers: Sequence[str] | None = None) -> Any:
+                 providers: Sequence[str] | None = None, initializers: dict[str, np.ndarray] | None = None) -> Any:
     """An ``onnxruntime.InferenceSession`` with ``threads`` intra-op threads (one inter-op).
+
+    ``initializers`` replace the values of graph initializers of those names (same shape and
+    dtype; the session keeps the arrays alive).
 
     Raises:
         ModelError: the file is missing or onnxruntime cannot load it.
@@ -324,8 +333,14 @@ def make_session(model_path: str | os.PathLike, threads: int = 2, optimization: 
     so.intra_op_num_threads = int(threads)
     so.inter_op_num_threads = 1
     so.graph_optimization_level = levels[optimization]
+    values = [(name, ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(a)), a)
+              for name, a in (initializers or {}).items()]
+    for name, value, _ in values:
+        so.add_initializer(name, value)
     try:
-        return ort.InferenceSession(str(path), so, providers=list(providers or ["CPUExecutionProvider"]))
+        session = ort.InferenceSession(str(path), so, providers=list(providers or ["CPUExecutionProvider"]))
+        session._tdfd_initializers = values  # the OrtValues must outlive the session
+        return session
     except Exception as exc:  # onnxruntime raises its own exception types
         first = str(exc).splitlines()[0] if str(exc) else repr(exc)
         raise ModelError(f"onnxruntime cannot load {path}: {first}") from exc
@@ -342,12 +357,16 @@ class DepthRuntime:
             (default), ``"basic"`` or ``"disable"``.
         camera: the user's camera (a :class:`tdfd.Camera`, a preset name or a camera JSON
             file), checked against the model's ``tdfd.coverage``; ``None``: the model's own.
+        psf_family: the lens PSF family the CNN is told (:mod:`tdfd.runtime_psf_family`):
+            ``"exported"`` (default: the one baked in at export), ``"gaussian"``, ``"pillbox"``,
+            or ``"unknown"``/``None``; only for a model with the family input.
 
     Raises:
         ModelError: a missing, unreadable or non-conforming file (wrong inputs/outputs,
             missing or invalid ``tdfd.*`` metadata), or a ``camera`` the model does not
             cover (or a model that states no coverage).
         CameraError: a ``camera`` file that is missing or invalid (naming it).
+        InputError: a ``psf_family`` that is none of those values.
 
     Attributes:
         camera: the user's ``camera`` when given (it blurs like the model's, so the model's
@@ -365,14 +384,17 @@ class DepthRuntime:
         magnification_per_dpt: the focus breathing the graph registers (``tdfd.breathing``;
             0 when the file states none).
         frame_scales: the two frames' image scales ``(s1, s2)`` it assumes (``(1, 1)``: none).
+        psf_family_info: the file's ``tdfd.psf_family`` (:class:`~tdfd.runtime_psf_family.PsfFamilyInfo`).
+        psf_family: the family the CNN is told now (``None``: unknown or no family input).
     """
 
     def __init__(self, model_path: str | os.PathLike | None = None, threads: int = 2,
                  providers: Sequence[str] | None = None, optimization: str = DEFAULT_OPTIMIZATION,
-                 camera: Camera | str | os.PathLike | None = None) -> None:
+                 camera: Camera | str | os.PathLike | None = None, psf_family: str | None = EXPORTED) -> None:
         path = default_model_path() if model_path is None else Path(model_path)
         self.path = path
         self.threads = int(threads)
+        self._session_options = (optimization, providers)
         self.session = make_session(path, threads, optimization, providers)
         inputs = [i.name for i in self.session.get_inputs()]
         outputs = [o.name for o in self.session.get_outputs()]
@@ -402,10 +424,30 @@ class DepthRuntime:
             raise ModelError(f"{path}: invalid tile grid tile={self.tile}, stride={self.stride}")
         self.version = str(self.metadata[VERSION_KEY])
         self.magnification_per_dpt, self.frame_scales = self._breathing()
+        self.psf_family_info = read_psf_family(self.metadata, str(path))
+        self.psf_family: str | None = self.psf_family_info.exported
+        if psf_family != EXPORTED:
+            self.set_psf_family(psf_family)
         self.model_camera = self.camera
         self.inverse_depth_offset_dpt = 0.0
         if camera is not None:
             self.camera = self._covered_camera(camera)
+
+    def set_psf_family(self, psf_family: str | None) -> "DepthRuntime":
+        """Tell the CNN another lens PSF family (values as the constructor's ``psf_family``);
+        the session is rebuilt with the family's code when it changes. Returns ``self``.
+
+        Raises:
+            InputError: an unknown value.
+            ModelError: a model without the family input (``tdfd.psf_family`` metadata).
+        """
+        family = requested_family(psf_family, self.psf_family_info, str(self.path))
+        if family != self.psf_family:
+            optimization, providers = self._session_options
+            self.session = make_session(self.path, self.threads, optimization, providers,
+                                        initializers={self.psf_family_info.initializer: code_array(family)})
+            self.psf_family = family
+        return self
 
     def _breathing(self) -> tuple[float, tuple[float, float]]:
         """``(magnification_per_dpt, frame_scales)`` from the ``tdfd.breathing`` metadata."""

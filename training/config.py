@@ -89,6 +89,11 @@ class ModelConfig:
     #: sides (odd, in tiles) of the neighbourhoods whose pooled fits are extra features
     #: (a number or a list; [] or 1: none)
     context: list[int] = field(default_factory=list)
+    #: the CNN also sees the lens's PSF family (:mod:`tdfd.model.psf_family_code`)
+    psf_family_input: bool = False
+    #: with ``psf_family_input``: the share of Gaussian and pillbox samples told their family
+    #: (the rest, and every power-exponential PSF, are unknown)
+    psf_family_told_share: float = 0.5
 
 
 @dataclass
@@ -373,6 +378,7 @@ def validate_config(cfg: TrainConfig) -> None:
         (cfg.eval.bins >= 1 and cfg.eval.samples >= 1 and cfg.eval.textureless_samples >= 0,
          "eval.bins and eval.samples must be >= 1, eval.textureless_samples >= 0"),
         (cfg.model.confidence_scale > 0 and cfg.model.correction_scale > 0, "model scales must be > 0"),
+        (0.0 <= cfg.model.psf_family_told_share <= 1.0, "model.psf_family_told_share must be in [0, 1]"),
     ]
     for ok, msg in checks:
         if not ok:

@@ -20,7 +20,7 @@ from typing import Any, Callable
 import torch
 
 from tdfd.camera_file import resolve_camera
-from tdfd.model import DFDModel
+from tdfd.model import DFDModel, training_codes
 
 from .config import ConfigError, DataConfig, ModelConfig
 
@@ -47,7 +47,8 @@ def build_model(mcfg: ModelConfig) -> DFDModel:
     camera = resolve_camera(mcfg.camera)
     return DFDModel(camera, tile=mcfg.tile, stride=mcfg.stride, confidence_scale=mcfg.confidence_scale,
                     correction_scale=mcfg.correction_scale, hidden=mcfg.hidden, blocks=mcfg.blocks,
-                    kernel_size=mcfg.kernel_size, dilation_base=mcfg.dilation_base, context=mcfg.context)
+                    kernel_size=mcfg.kernel_size, dilation_base=mcfg.dilation_base, context=mcfg.context,
+                    psf_family_input=mcfg.psf_family_input)
 
 
 def make_dataset(dcfg: DataConfig, mcfg: ModelConfig, seed: int, height: int | None = None,
@@ -92,16 +93,24 @@ def fetch_batch(dataset: Any, indices: list[int]) -> dict[str, Any]:
 
 
 class Featurizer:
-    """The model's analytic stage: image pair -> CNN features and what the head needs."""
+    """The model's analytic stage: image pair -> CNN features and what the head needs.
+
+    With ``model.psf_family_input`` each sample is told its own PSF family or not
+    (:func:`tdfd.model.training_codes`, ``model.psf_family_told_share``)."""
 
     def __init__(self, mcfg: ModelConfig) -> None:
         self.model = build_model(mcfg).eval().set_validate(False)
+        self.told_share = float(mcfg.psf_family_told_share)
 
     @torch.no_grad()
     def __call__(self, batch: dict[str, Any]) -> dict[str, torch.Tensor]:
         i1 = batch["image_f1"].float()
         i2 = batch["image_f2"].float()
-        feats, r = self.model.features(i1, i2)
+        codes = None
+        if self.model.psf_family_input:  # each sample's own PSF family, told or unknown
+            params = batch.get("params")
+            codes = training_codes(params if isinstance(params, list) else [None] * i1.shape[0], self.told_share)
+        feats, r = self.model.features(i1, i2, codes)
         target = batch["tile_depth"].float()
         if target.shape[-2:] != feats.shape[-2:]:
             raise ConfigError(f"dataset tile_depth {tuple(target.shape)} does not match the model grid {tuple(feats.shape)}")

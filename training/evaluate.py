@@ -25,7 +25,7 @@ from typing import Any
 
 import torch
 
-from tdfd.model import DFDModel
+from tdfd.model import FAMILY_CODES, DFDModel, training_codes
 
 from .config import DataConfig, EvalConfig, ModelConfig, TrainConfig
 from .data import fetch_batch, make_dataset
@@ -67,8 +67,13 @@ def _family_id(name: str) -> int:
 
 
 @torch.no_grad()
-def collect(model: DFDModel, dataset: Any, count: int, chunk: int = 8) -> dict[str, torch.Tensor]:
+def collect(model: DFDModel, dataset: Any, count: int, chunk: int = 8, tell_family: bool = False
+            ) -> dict[str, torch.Tensor]:
     """Run the whole model on samples ``0 .. count-1``; per-tile results (flattened).
+
+    With ``tell_family`` (a model with the PSF family input) each Gaussian or pillbox sample
+    is told its own family (:func:`tdfd.model.training_codes` with every sample told);
+    otherwise the model's own family (the saved model's: unknown).
 
     Returns:
         ``true``, ``refined``, ``analytic`` depths (m), ``confidence``, and per tile the
@@ -80,10 +85,13 @@ def collect(model: DFDModel, dataset: Any, count: int, chunk: int = 8) -> dict[s
                                                          "signal_e", "psf", "family")}
     for start in range(0, count, chunk):
         batch = fetch_batch(dataset, list(range(start, min(count, start + chunk))))
-        depth, conf, depth_a = model(batch["image_f1"].float(), batch["image_f2"].float())
-        n, tiles = depth.shape[0], depth[0].numel()
+        n = batch["image_f1"].shape[0]
         params = batch.get("params") or [{}] * n
         params = params if isinstance(params, list) else [{}] * n
+        codes = training_codes(params, 1.0) if tell_family else None
+        r = model.analyse(batch["image_f1"].float(), batch["image_f2"].float(), codes)
+        depth, conf, depth_a = r.depth, r.confidence, r.depth_analytic
+        tiles = depth[0].numel()
         out["true"].append(batch["tile_depth"].float().flatten())
         out["refined"].append(depth.flatten())
         out["analytic"].append(depth_a.flatten())
@@ -207,6 +215,9 @@ def evaluate_model(model: DFDModel, data: DataConfig, model_cfg: ModelConfig, ev
         tt = collect(model, tds, ev.textureless_samples)
         tconf = tt["confidence"]
     result = summarise(tiles, model.camera.depth_range_m, ev.bins, tconf, ev.min_contrast, ev.min_signal_e)
+    if model.psf_family_input:  # the same planes, each Gaussian or pillbox one told its family
+        told = summarise(collect(model, ds, ev.samples, tell_family=True), model.camera.depth_range_m, ev.bins)
+        result["by_psf_told"] = {k: v for k, v in told["by_psf"].items() if k in FAMILY_CODES}
     result["setup"] = {"samples": ev.samples, "textureless_samples": ev.textureless_samples, "seed": ev.seed,
                        "height": ev.height, "width": ev.width, "options": ev.options,
                        "textureless_options": ev.textureless_options, "dataset": data.dataset}
@@ -246,9 +257,17 @@ def report_markdown(result: dict[str, Any], plot_name: str | None = None) -> str
         lines.append(f"| {r['depth_lo_m']:.2f}–{r['depth_hi_m']:.2f} | {r['tiles']} | {_pct(r['mre_analytic'])} | "
                      f"{_pct(r['mre_refined'])} | {_pct(r['bias_analytic'])} | {_pct(r['bias_refined'])} | {conf} |")
     if result.get("by_psf"):
-        lines += ["", "| PSF shape | tiles | analytic | refined |", "|---|---|---|---|"]
+        told = result.get("by_psf_told")
+        if told is None:
+            lines += ["", "| PSF shape | tiles | analytic | refined |", "|---|---|---|---|"]
+        else:
+            lines += ["", "| PSF shape | tiles | analytic | refined (family unknown) | refined, told the family |",
+                      "|---|---|---|---|---|"]
         for name, r in result["by_psf"].items():
-            lines.append(f"| {name} | {r['tiles']} | {_pct(r['mre_analytic'])} | {_pct(r['mre_refined'])} |")
+            row = f"| {name} | {r['tiles']} | {_pct(r['mre_analytic'])} | {_pct(r['mre_refined'])} |"
+            if told is not None:
+                row += f" {_pct(told[name]['mre_refined']) if name in told else '–'} |"
+            lines.append(row)
     if result.get("by_family"):
         lines += ["", "| texture family (first texture of the plane) | tiles | analytic | refined |", "|---|---|---|---|"]
         for name, r in result["by_family"].items():

@@ -28,7 +28,7 @@ from ..camera import Camera
 from ..driver import Faults
 from ..errors import InputError
 from .estimators import default_model_path, load_estimator
-from .psf_family_option import add_psf_family_argument, resolve_psf_family
+from .psf_family_option import add_psf_family_argument, resolve_psf_family, tell_estimator
 from .hardware import run_hardware
 from .light_cli import (
     add_light_arguments,
@@ -222,6 +222,7 @@ def _run_sim(args: argparse.Namespace) -> int:
     optics = est.camera if est is not None else Camera.preset("reference")
     controller["psf_family"], controller["psf_sigma_scale"] = resolve_psf_family(args.psf_family, sim_camera=optics,
                                                                                  sim_psf=_psf(args.psf))
+    tell_estimator(est, controller["psf_family"])
     light, light_controller = sim_light(args, optics)
     controller.update(light_controller)
     bench = SimBench(light=light, light_limits=light_limits(args), estimator=est, readout_hw=readout, roi=roi, timing=timing,
@@ -238,7 +239,8 @@ def _run_sim(args: argparse.Namespace) -> int:
               f"{bench.lens.power_limits_dpt[0]:.2f}..{bench.lens.power_limits_dpt[1]:.2f} dpt, settling {args.settle_ms:g} ms; "
               f"camera {args.fps:g} fps ({args.trigger} trigger), exposure {args.exposure_ms:g} ms, read-out "
               f"{args.readout_ms:g} ms, window {readout[0]}x{readout[1]} px, ROI {bench.roi}; compute {charge_txt}; "
-              f"PSF {args.psf}, the controller told {controller['psf_family'] or 'no family'} (--psf-family {args.psf_family})")
+              f"PSF {args.psf}, the controller told {controller['psf_family'] or 'no family'} (--psf-family {args.psf_family})"
+              + (f", the model's CNN {est.psf_family or 'unknown'}" if getattr(est, "takes_psf_family", False) else ""))
         if args.faults:
             print(f"fault injection on the emulator: {args.faults}")
         if args.continuous:
@@ -326,6 +328,7 @@ def _run_hardware(args: argparse.Namespace) -> int:
         raise InputError("--method both is for the simulated bench")
     est = _estimator(args, method == "dfd")
     family, scale = resolve_psf_family(args.psf_family)  # before the light and the lens: a bad value touches neither
+    tell_estimator(est, family)
     light = open_named_light(args)  # before the lens: a missing light port leaves the lens untouched
     on_term = sigterm_as_interrupt() if light is not None else contextlib.nullcontext()  # kill -> Ctrl-C's exit path
     try:

@@ -139,6 +139,27 @@ class OnnxEstimator:
         self.last_problem: str | None = None
         self.confidence_scale = _confidence_scale(self._runtime.metadata.get(MODEL_KEY))
 
+    @property
+    def takes_psf_family(self) -> bool:
+        """Whether the model's CNN takes the lens's PSF family (``tdfd.psf_family`` metadata)."""
+        return self._runtime.psf_family_info.takes_input
+
+    @property
+    def psf_family(self) -> str | None:
+        """The PSF family the model is told now (``None``: unknown, or no family input)."""
+        return self._runtime.psf_family
+
+    def set_psf_family(self, family: str | None) -> "OnnxEstimator":
+        """Tell the model's CNN the lens's PSF family (``"gaussian"``, ``"pillbox"``; ``None``:
+        unknown); returns ``self``.
+
+        Raises:
+            ModelError: the model has no family input (:attr:`takes_psf_family`).
+            InputError: an unknown family.
+        """
+        self._runtime.set_psf_family(family)
+        return self
+
     def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray,
                  optical_centre: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Depth (m) and confidence, each ``(h, w)``, for one pair of ``(H, W)`` frames

@@ -6,6 +6,9 @@ controller's cross-blur searches fit both), a camera JSON file written by ``tdfd
 none), or on the simulated bench ``calibrate`` (a focus sweep through the simulated optics
 measures it, :mod:`tdfd.autofocus.sim.psf_calibration`: the controller is told what the
 measurement says, not the simulator's ``--psf``).
+
+A family given or measured also reaches the depth model when its CNN takes the family
+(:func:`tell_estimator`); unknown leaves the model with the family it was exported with.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from ..camera import Camera
 from ..camera_file import PSF_FAMILY_VALUES, load_camera_file
 from ..errors import InputError
 
-__all__ = ["add_psf_family_argument", "resolve_psf_family"]
+__all__ = ["add_psf_family_argument", "resolve_psf_family", "tell_estimator"]
 
 log = logging.getLogger(__name__)
 
@@ -71,3 +74,21 @@ def resolve_psf_family(text: str, *, sim_camera: Camera | None = None, sim_psf: 
         log.warning("%s has no psf_family (the calibration did not decide it): the PSF family stays unknown", path)
         return None, 1.0
     return cf.psf_family, cf.psf_sigma_scale
+
+
+def tell_estimator(estimator: Any, family: str | None) -> None:
+    """Tell ``estimator``'s model the ``family`` that ``--psf-family`` resolved to.
+
+    A model whose CNN takes the family (``estimator.takes_psf_family``, an ONNX file with the
+    ``tdfd.psf_family`` metadata) is told a known family; ``None`` (unknown) leaves it with the
+    family it was exported with (``python -m export --camera FILE`` bakes in the file's). A
+    model without the input is left as it is, with an info line when a family was known.
+    """
+    if family is None or estimator is None:
+        return
+    if getattr(estimator, "takes_psf_family", False):
+        estimator.set_psf_family(family)
+        log.info("the depth model is told the PSF family %s", family)
+    else:
+        log.info("the depth model (%s) takes no PSF family: only the controller's cross-blur fits use %s",
+                 type(estimator).__name__, family)

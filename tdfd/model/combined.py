@@ -50,12 +50,17 @@ from ..dfd.fourier_ratio import DFDResult, FourierRatioDFD, validate_pair
 from ..errors import InputError, ModelError
 from ..optics.thin_lens import camera_sigmas
 from ..registration import BreathingRegistration
+from .psf_family_code import NUM_FAMILY_CHANNELS, append_family_maps, family_code
 from .refine import RefineNet
 
 __all__ = ["DFDModel", "RefinedResult", "tile_features", "num_features", "context_sizes", "pool_measurements",
            "MODEL_FORMAT"]
 
 logger = logging.getLogger(__name__)
+
+#: Name of the PSF family code in the exported graph (an initializer ``(1, 2, 1, 1)`` float32
+#: that ONNX Runtime may override: :class:`tdfd.runtime.DepthRuntime` ``psf_family``).
+PSF_FAMILY_INITIALIZER = "psf_family_code"
 
 #: Format tag written into the JSON side file of :meth:`DFDModel.save`.
 MODEL_FORMAT = "tdfd.dfd_model/1"
@@ -218,6 +223,11 @@ class DFDModel(nn.Module):
             key): both frames are registered to a common image scale before the analytic
             stage (:class:`~tdfd.registration.BreathingRegistration`, about the centre of the
             frames given). 0 (default): no registration, no extra operation.
+        psf_family_input: the CNN also sees the lens's PSF family as two constant feature
+            maps (:mod:`tdfd.model.psf_family_code`; training tells it per sample).
+        psf_family: the family the model is told at inference (``"gaussian"``,
+            ``"pillbox"``; ``None``: unknown), e.g. the camera file's measured ``psf_family``
+            (:meth:`set_psf_family`). Only with ``psf_family_input``.
         **refine_config: keyword arguments of :class:`~tdfd.model.refine.RefineNet`
             (``hidden``, ``blocks``, ``kernel_size``).
 
@@ -229,7 +239,8 @@ class DFDModel(nn.Module):
 
     def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, *, analytic: dict[str, Any] | None = None,
                  confidence_scale: float = 0.01, correction_scale: float = 1.0, context: int | Sequence[int] = 1,
-                 magnification_per_dpt: float = 0.0, **refine_config: Any) -> None:
+                 magnification_per_dpt: float = 0.0, psf_family_input: bool = False, psf_family: str | None = None,
+                 **refine_config: Any) -> None:
         super().__init__()
         analytic = dict(analytic or {})
         for key in ("tile", "stride", "validate", "camera"):
@@ -249,10 +260,18 @@ class DFDModel(nn.Module):
         self.analytic = FourierRatioDFD(camera, tile=tile, stride=stride, validate=False, **analytic)
         #: focus-breathing registration before the analytic stage (no parameters, no state)
         self.registration = BreathingRegistration(magnification_per_dpt, camera.lens_powers_dpt)
+        #: whether the CNN's input ends with the PSF family code (two channels)
+        self.psf_family_input = bool(psf_family_input)
+        #: the code told at inference, ``(1, 2, 1, 1)``: not saved (the JSON's ``psf_family`` is);
+        #: the export keeps it one initializer of that name (:data:`PSF_FAMILY_INITIALIZER`)
+        self.register_buffer(PSF_FAMILY_INITIALIZER, family_code(None).reshape(1, -1, 1, 1), persistent=False)
+        self.psf_family: str | None = None
+        channels = num_features(self.analytic.num_rings, self.contexts) + NUM_FAMILY_CHANNELS * self.psf_family_input
         try:
-            self.refine = RefineNet(num_features(self.analytic.num_rings, self.contexts), **refine_config)
+            self.refine = RefineNet(channels, **refine_config)
         except TypeError as exc:
             raise InputError(f"bad refine option: {exc}") from exc
+        self.set_psf_family(psf_family)
         self.validate = True
         #: after :meth:`load`: whether the analytic layer still gives the features the CNN
         #: was trained on (``None``: not checked).
@@ -281,6 +300,21 @@ class DFDModel(nn.Module):
         self.registration = BreathingRegistration(magnification_per_dpt, self.camera.lens_powers_dpt)
         return self
 
+    def set_psf_family(self, family: str | None) -> "DFDModel":
+        """Tell the CNN the lens's PSF family from now on (``None``: unknown); returns ``self``.
+
+        The weights do not depend on it; the export bakes the family in as a constant
+        (``python -m export --camera FILE`` takes the camera file's measured ``psf_family``).
+
+        Raises:
+            InputError: an unknown family, or a family for a model without the family input.
+        """
+        if family is not None and not self.psf_family_input:
+            raise InputError(f"this model was trained without the PSF family input: it cannot be told {family!r}")
+        self.psf_family_code.copy_(family_code(family).reshape(1, -1, 1, 1))
+        self.psf_family = family
+        return self
+
     def set_validate(self, flag: bool) -> "DFDModel":
         """Turn input validation on or off (off for export); returns ``self``."""
         self.validate = bool(flag)
@@ -298,19 +332,28 @@ class DFDModel(nn.Module):
                 "camera_name": self.camera.name, "tile": self.tile, "stride": self.stride,
                 "analytic": self.analytic_config, "confidence_scale": self.confidence_scale,
                 "correction_scale": self.correction_scale, "context": self.context,
-                "magnification_per_dpt": self.magnification_per_dpt,
+                "magnification_per_dpt": self.magnification_per_dpt, "psf_family_input": self.psf_family_input,
+                "psf_family": self.psf_family,
                 "refine": {k: v for k, v in self.refine.config().items() if k not in ("in_channels", "out_channels")}}
 
     # ------------------------------------------------------------------ compute
-    def features(self, image_f1: torch.Tensor, image_f2: torch.Tensor) -> tuple[torch.Tensor, DFDResult]:
+    def features(self, image_f1: torch.Tensor, image_f2: torch.Tensor, psf_family_codes: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, DFDResult]:
         """The analytic stage: CNN input features ``(B, C, h, w)`` and the analytic result.
 
         It has no trainable parameters, so training may compute it once per batch (or in a
-        data-loading worker) and call :meth:`head` on the result.
+        data-loading worker) and call :meth:`head` on the result. With the PSF family input,
+        ``psf_family_codes`` ``(B, 2)`` (:func:`~tdfd.model.psf_family_code.training_codes`)
+        replaces the model's own family for these samples.
         """
         if self.validate and not is_exporting():
             validate_pair(image_f1, image_f2, self.tile)
-        return self._analytic_features(*self.registration(image_f1, image_f2))
+        feats, r = self._analytic_features(*self.registration(image_f1, image_f2))
+        if self.psf_family_input:
+            feats = append_family_maps(feats, self.psf_family_code if psf_family_codes is None else psf_family_codes)
+        elif psf_family_codes is not None:
+            raise InputError("psf_family_codes given to a model without the PSF family input")
+        return feats, r
 
     def _analytic_features(self, image_f1: torch.Tensor, image_f2: torch.Tensor) -> tuple[torch.Tensor, DFDResult]:
         """:meth:`features` on frames already registered."""
@@ -363,9 +406,11 @@ class DFDModel(nn.Module):
         ratio = torch.exp(log_scale) / self.confidence_scale
         return q, log_scale, 1.0 / (1.0 + ratio * ratio), q_a
 
-    def analyse(self, image_f1: torch.Tensor, image_f2: torch.Tensor) -> RefinedResult:
-        """Run the whole model and return every intermediate (see :class:`RefinedResult`)."""
-        feats, r = self.features(image_f1, image_f2)
+    def analyse(self, image_f1: torch.Tensor, image_f2: torch.Tensor, psf_family_codes: torch.Tensor | None = None
+                ) -> RefinedResult:
+        """Run the whole model and return every intermediate (see :class:`RefinedResult`;
+        ``psf_family_codes`` as in :meth:`features`)."""
+        feats, r = self.features(image_f1, image_f2, psf_family_codes)
         q, log_scale, conf, q_a = self.head(feats, r.inverse_depth, r.rel_error)
         return RefinedResult(depth=1.0 / q, confidence=conf, depth_analytic=1.0 / q_a, inverse_depth=q,
                              log_scale=log_scale, features=feats, analytic=r)
@@ -448,6 +493,7 @@ class DFDModel(nn.Module):
             return cls(camera, tile=cfg["tile"], stride=cfg["stride"], analytic=cfg.get("analytic") or {},
                        confidence_scale=cfg["confidence_scale"], correction_scale=cfg["correction_scale"],
                        context=cfg.get("context", 1), magnification_per_dpt=cfg.get("magnification_per_dpt", 0.0),
+                       psf_family_input=cfg.get("psf_family_input", False), psf_family=cfg.get("psf_family"),
                        **cfg["refine"])
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelError(f"invalid model description: {exc!r}") from exc
