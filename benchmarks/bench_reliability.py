@@ -140,6 +140,8 @@ def _run_unit(unit: tuple, estimator: Any = None) -> tuple[list, list]:
 
     seed, k, trials, n_contrast, model, charge, evidence, cross, pair_cross, family = unit
     est = estimator if estimator is not None else load_estimator(model)
+    if getattr(est, "takes_psf_family", False):  # the model's CNN is told what the controller is (None: unknown)
+        est.set_psf_family(family[0])
     dfd, con = [], []
     with SimBench(estimator=est, seed=seed, psf=PSFS[k], compute_s=charge, evidence_s=evidence,
                   cross_blur_s=cross, pair_cross_blur_s=pair_cross,
@@ -204,7 +206,8 @@ def main(argv: list[str] | None = None) -> int:
             "of `tdfd calibrate`) measures "
             + "; ".join(f"{psf} optics: **{fit.family or 'undecided'}** (the other family {fit.cost_ratio:.2f}x the "
                         f"cost, {fit.regions} regions; blur scale {families[psf][1]:.3f})" for psf, fit in fits.items())
-            + ". Its cross-blur searches then fit that family only, at that blur scale; a cross-blur focus is sure only "
+            + ". The model's CNN is told the same family when it takes one (`tdfd.psf_family`). "
+              "Its cross-blur searches then fit that family only, at that blur scale; a cross-blur focus is sure only "
               "as its cost curve's one clear minimum (a runner-up elsewhere costs at least 1.5x: one family fitted, "
               "nothing else flags a periodic texture's several solutions); any credible cross-blur focus farther than "
               "0.8 px from the lens vetoes a verification pass; through a disk the DFD pair's check of a 2-frame "

@@ -55,3 +55,24 @@ def test_textureless_gets_low_confidence(model):
     with torch.no_grad():
         _, conf, _ = model(b["image_f1"], b["image_f2"])
     assert float(conf.quantile(0.9)) < 0.1
+
+
+def test_takes_the_psf_family_and_is_saved_unknown(model):
+    assert model.psf_family_input and model.psf_family is None  # a camera file's family is told at export or run time
+
+
+def test_the_right_psf_family_beats_the_wrong_one(model):
+    """Told its lens's family, the shipped CNN errs less than told the other one (held-out
+    Gaussian-PSF planes): the family input is used, and used the right way round."""
+    ds = data_synth.DefocusPairDataset(size=192, seed=424_242, layouts={"plane": 1.0}, families=TEXTURED_FAMILIES,
+                                       illumination_prob=0.0, psf_shapes=["gaussian"])
+    b = ds.batch(list(range(16)))
+    t = b["tile_depth"]
+    keep = (t >= 0.3) & (t <= 1.0)
+    err = {}
+    with torch.no_grad():
+        for family in ("gaussian", "pillbox"):
+            depth = model.set_psf_family(family)(b["image_f1"], b["image_f2"])[0]
+            err[family] = float(((depth - t).abs() / t)[keep].median())
+    model.set_psf_family(None)
+    assert err["gaussian"] < 0.9 * err["pillbox"], err
