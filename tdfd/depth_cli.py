@@ -4,6 +4,7 @@ r"""``tdfd depth``: depth from a DFD pair of image files with the exported ONNX 
 
     tdfd depth IMAGE_F1 IMAGE_F2 [--model M] [-o depth.npy|.tiff|.png] [--white-level L]
                [--full-resolution] [--threshold C] [--centre FRACTION] [--threads T]
+               [--psf-family gaussian|pillbox|unknown|CAM.json]
 
 Reads single-channel 8- or 16-bit PNG/TIFF frames (or float32 TIFF in [0, 1]) with OpenCV
 (``IMREAD_UNCHANGED``), runs :class:`tdfd.runtime.DepthRuntime` (no torch), prints a
@@ -34,7 +35,7 @@ from typing import Any
 
 from .errors import DTypeError, InputError, ShapeError
 
-__all__ = ["register", "read_frame", "write_depth", "check_writable", "colorize_depth", "run"]
+__all__ = ["register", "read_frame", "write_depth", "check_writable", "colorize_depth", "psf_family_option", "run"]
 
 logger = logging.getLogger(__name__)
 
@@ -63,7 +64,31 @@ def register(subparsers: Any) -> None:
     p.add_argument("--centre", type=float, default=0.5,
                    help="fraction of the image height and width forming the centre region (default 0.5)")
     p.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads (default 2)")
+    p.add_argument("--psf-family", default="exported", metavar="FAMILY",
+                   help="the lens's PSF family the model's CNN is told: gaussian, pillbox, unknown, a camera JSON "
+                        "from 'tdfd calibrate' (its measured psf_family), or exported (default: the family the ONNX "
+                        "file was exported with); only for a model with the family input")
     p.set_defaults(func=run)
+
+
+def psf_family_option(text: str) -> str | None:
+    """The ``psf_family`` of :class:`~tdfd.runtime.DepthRuntime` that ``--psf-family text`` names.
+
+    Raises:
+        InputError: neither a family, ``unknown``, ``exported`` nor a ``.json`` path.
+        CameraError: a camera file that cannot be read (the message names it).
+    """
+    from .camera_file import PSF_FAMILY_VALUES, load_camera_file
+
+    if text in (*PSF_FAMILY_VALUES, "unknown", "exported"):
+        return text
+    if Path(text).suffix.lower() != ".json":
+        raise InputError(f"--psf-family must be one of {PSF_FAMILY_VALUES}, 'unknown', 'exported' or a camera JSON "
+                         f"file, got {text!r}")
+    family = load_camera_file(text).psf_family
+    if family is None:
+        logger.warning("%s has no psf_family (the calibration did not decide it): the model is told unknown", text)
+    return family
 
 
 def read_frame(path: str | Path) -> Any:
@@ -235,13 +260,14 @@ def run(args: argparse.Namespace) -> int:
     if f1.dtype != f2.dtype:
         raise DTypeError(f"{args.image_f1} has {f1.dtype} pixels but {args.image_f2} has {f2.dtype}")
     model = Path(args.model) if args.model else default_model_path()
-    rt = DepthRuntime(model, threads=args.threads)
+    rt = DepthRuntime(model, threads=args.threads, psf_family=psf_family_option(args.psf_family))
     res = rt(f1, f2, white_level=args.white_level)
     h, w = res.depth.shape
     valid = res.valid(args.threshold)
     centre = res.centre_depth(args.centre, args.threshold)
     print(f"{args.image_f1}, {args.image_f2}: {f1.shape[0]}x{f1.shape[1]} {f1.dtype}, {h}x{w} tiles "
-          f"({rt.tile} px, stride {rt.stride}), model {model.name}")
+          f"({rt.tile} px, stride {rt.stride}), model {model.name}"
+          + (f", told PSF family {rt.psf_family or 'unknown'}" if rt.psf_family_info.takes_input else ""))
     if math.isfinite(centre):
         print(f"centre depth: {centre:.4f} m (median of confident cells in the central {args.centre:.0%}); "
               f"in-focus ECVFL power {rt.in_focus_power_dpt(centre):+.3f} dpt")

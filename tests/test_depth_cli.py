@@ -209,3 +209,35 @@ def test_unwritable_output_is_one_line(plane_pairs, shipped_onnx, tmp_path, caps
             _one_line_error(*_run(capsys, a, b, "--model", shipped_onnx, "-o", ro / "d.png")[::2], "not writable")
         finally:
             ro.chmod(0o700)
+
+
+def test_psf_family_reaches_the_model(plane_pairs, shipped_onnx, tmp_path, capsys):
+    """The shipped model takes the lens's PSF family: told by name or by a calibrated camera
+    file, it changes the refined depth; the default keeps the exported (unknown) family."""
+    from tdfd.camera import Camera
+    from tdfd.camera_file import CameraFile
+
+    f1, f2, _ = plane_pairs[0]
+    a, b = _write_pair(tmp_path, f1, f2, "fam")
+    cam = CameraFile(Camera.preset("reference"), psf_family="pillbox").write(tmp_path / "cam.json")
+    maps = {}
+    for option in ("exported", "pillbox", str(cam)):
+        out = tmp_path / f"d_{len(maps)}.npy"
+        rc, stdout, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--psf-family", option,
+                               "-o", out)
+        assert rc == 0, err
+        maps[option] = np.load(out)
+        told = "unknown" if option == "exported" else "pillbox"
+        assert f"told PSF family {told}" in stdout.splitlines()[0], stdout
+    assert not np.array_equal(maps["exported"], maps["pillbox"])
+    np.testing.assert_array_equal(maps["pillbox"], maps[str(cam)])
+
+
+def test_psf_family_errors_are_one_line(synth_pngs, model_path, shipped_onnx, capsys):
+    a, b, _ = synth_pngs[0]
+    rc, _, err = _run(capsys, a, b, "--model", model_path, "--psf-family", "pillbox")
+    _one_line_error(rc, err, "without the PSF family input")
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--psf-family", "disk")
+    _one_line_error(rc, err, "--psf-family must be one of")
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--psf-family", "missing.json")
+    _one_line_error(rc, err, "missing.json")
