@@ -78,17 +78,15 @@ def psf_family_option(text: str) -> str | None:
         InputError: neither a family, ``unknown``, ``exported`` nor a ``.json`` path.
         CameraError: a camera file that cannot be read (the message names it).
     """
-    from .camera_file import PSF_FAMILY_VALUES, load_camera_file
+    from .autofocus.psf_family_option import resolve_psf_family
+    from .camera_file import PSF_FAMILY_VALUES
 
     if text in (*PSF_FAMILY_VALUES, "unknown", "exported"):
         return text
     if Path(text).suffix.lower() != ".json":
         raise InputError(f"--psf-family must be one of {PSF_FAMILY_VALUES}, 'unknown', 'exported' or a camera JSON "
                          f"file, got {text!r}")
-    family = load_camera_file(text).psf_family
-    if family is None:
-        logger.warning("%s has no psf_family (the calibration did not decide it): the model is told unknown", text)
-    return family
+    return resolve_psf_family(text)[0]  # the camera file's measured family (unknown, with a warning, when it has none)
 
 
 def read_frame(path: str | Path) -> Any:

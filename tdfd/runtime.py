@@ -333,8 +333,8 @@ def make_session(model_path: str | os.PathLike, threads: int = 2, optimization: 
     so.intra_op_num_threads = int(threads)
     so.inter_op_num_threads = 1
     so.graph_optimization_level = levels[optimization]
-    values = [(name, ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(a)), a)
-              for name, a in (initializers or {}).items()]
+    arrays = {name: np.ascontiguousarray(a) for name, a in (initializers or {}).items()}
+    values = [(name, ort.OrtValue.ortvalue_from_numpy(a), a) for name, a in arrays.items()]  # OrtValues borrow `a`
     for name, value, _ in values:
         so.add_initializer(name, value)
     try:

@@ -22,13 +22,14 @@ from typing import Any
 
 import numpy as np
 
+from .camera_file import PSF_FAMILY_VALUES
 from .contract import PSF_FAMILY_KEY
 from .errors import InputError, ModelError
 
 __all__ = ["FAMILIES", "EXPORTED", "UNKNOWN", "PsfFamilyInfo", "read_psf_family", "code_array", "requested_family"]
 
-#: The families a model may be told, in code-channel order (as :data:`tdfd.model.FAMILY_CODES`).
-FAMILIES = ("gaussian", "pillbox")
+#: The families a model may be told, in code-channel order: the camera file's ``psf_family`` values.
+FAMILIES = PSF_FAMILY_VALUES
 #: ``psf_family`` value that keeps the family the file was exported with.
 EXPORTED = "exported"
 #: ``psf_family`` value for a lens whose family was not measured (also ``None``).

@@ -29,12 +29,14 @@ from typing import Any, Sequence
 import torch
 
 from ..errors import InputError, ShapeError
+from ..runtime_psf_family import FAMILIES, code_array
 
 __all__ = ["FAMILY_CODES", "NUM_FAMILY_CHANNELS", "family_code", "append_family_maps", "training_codes",
            "TOLD_SEED_SALT"]
 
-#: The families the code names, in channel order (the camera file's ``psf_family`` values).
-FAMILY_CODES = ("gaussian", "pillbox")
+#: The families the code names, in channel order (the camera file's ``psf_family`` values; the
+#: runtime's :data:`tdfd.runtime_psf_family.FAMILIES`, which encodes the same code without torch).
+FAMILY_CODES = FAMILIES
 #: Feature channels the code adds.
 NUM_FAMILY_CHANNELS = len(FAMILY_CODES)
 #: Mixed into a sample's seed for the told/unknown draw (independent of the sample's content).
@@ -47,12 +49,7 @@ def family_code(family: str | None) -> torch.Tensor:
     Raises:
         InputError: ``family`` is neither ``None`` nor one of :data:`FAMILY_CODES`.
     """
-    if family is not None and family not in FAMILY_CODES:
-        raise InputError(f"psf_family must be None (unknown) or one of {FAMILY_CODES}, got {family!r}")
-    code = torch.zeros(NUM_FAMILY_CHANNELS)
-    if family is not None:
-        code[FAMILY_CODES.index(family)] = 1.0
-    return code
+    return torch.from_numpy(code_array(family)).reshape(NUM_FAMILY_CHANNELS)
 
 
 def append_family_maps(features: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
