@@ -296,8 +296,11 @@ three) and the depth pooled over the tiles with a cue in the lit pair
 (`tdfd.autofocus.lit_tiles.pair_cue_mask`: contrast clear of each frame's noise floor, the
 pattern's edges on a texture-less target; `pool_lit_tiles`); a lit frame that clips more than
 1 % of the ROI (a bright texture under the pattern) sends the pair unlit (a clipped lit f1:
-f2 and f1 unlit from where the lens is, one frame lost). Focus is declared on
-the controller's own evidence only (issue 20's rules, unchanged: an uncertainty under 0.25 px
+f2 and f1 unlit from where the lens is, one frame lost). The one-region fit fused with the lit
+tiles (step 3, since 2026-11-26) needs the pattern inside the ROI's outer ring of tiles: on this
+bench's ROI (160 x 128 px) the two bars reach it at every distance, so it does not engage here
+(0 of 12 coherent targets, 0.3-1.0 m; its time, 1.4 ms per fit, is charged when it does).
+Focus is declared on the controller's own evidence only (issue 20's rules, unchanged: an uncertainty under 0.25 px
 with the pair's own relative blur agreeing, or a verification frame). "ambient frame taken":
 the former policy, kept as an option (`ambient_frame=True`): the first frame is taken unlit
 and probes the texture; below 1.2x the noise floor the pair is lit (f2 at P_e2, f1 at P_e1:

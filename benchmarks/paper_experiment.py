@@ -7,10 +7,13 @@ A black, texture-less planar target from 30 to 100 cm is lit by
 (b) an incoherent projector with the same stripes, focused at 56.8 cm with 12.5 cm / 16.5 cm
     depth of field (:class:`tdfd.illumination.ProjectorIllumination`),
 
-imaged at the two focal settings with sensor noise. ``mu`` is calibrated from the pair at
-46 cm (as in the paper) and the depth of every pair is estimated over one region covering
-the pattern (as in the paper). The percentage depth error versus distance is plotted like
-Fig. 10.
+imaged at the two focal settings with sensor noise. ``mu`` is calibrated from one pair at a
+known distance (as in the paper: 46 cm for the paper's camera; 30 cm for the reference
+camera, whose pair blurs both frames equally at 45.45 cm, where a pair measures no ``mu``:
+:mod:`tdfd.dfd.calibrate`, *Conditioning*, and the conditioning table this benchmark
+writes) and the depth of every pair is estimated over one region covering the pattern (as
+in the paper). The percentage depth error versus distance is plotted like Fig. 10. The
+reference camera is run over ``--draws`` independent draws (calibration pair and captures).
 
 Two cameras:
 
@@ -41,7 +44,8 @@ import torch
 
 from tdfd import Camera
 from tdfd.dfd import FourierRatioDFD
-from tdfd.dfd.calibrate import calibrate_mu
+from tdfd.dfd.calibrate import calibrate_mu, mu_relative_uncertainty
+from tdfd.dfd.region_fit import fit_region
 from tdfd.illumination import CoherentIllumination, ProjectorIllumination, illuminate
 from tdfd.forward import Defocus, DFDForward
 from tdfd.sensor import SensorModel
@@ -52,6 +56,11 @@ log = logging.getLogger(__name__)
 
 DISTANCES_CM = [30, 35, 40, 45, 50, 56.8, 60, 65, 70, 75.4, 80, 85, 90, 95, 100]
 CALIBRATION_CM = 46.0
+#: the reference camera's calibration distance: 1.13 dpt from its pair's equal-blur distance
+#: (0.4545 m), as the paper's 46 cm is 1.2 dpt from its own camera's (1.035 m)
+REFERENCE_CALIBRATION_CM = 30.0
+#: distances whose one-pair mu the conditioning table compares
+CONDITIONING_CM = [30, 35, 40, 44, 46, 50, 60, 80, 100]
 FIGURE = ROOT / "docs" / "paper_fig10.png"
 
 
@@ -94,17 +103,23 @@ def capture(camera: Camera, source, depth_m: float, size: tuple[int, int], gener
 
 
 def run_camera(camera: Camera, size: tuple[int, int], tile: int, max_bin: int, seed: int, repeats: int,
-               refine=None, optics: str = "gaussian") -> dict[str, dict[float, list[float]]]:
-    """Percentage depth errors per source and distance (``repeats`` noisy captures each)."""
+               refine=None, optics: str = "gaussian", calibration_cm: float = CALIBRATION_CM,
+               refine_family: str | None = None) -> dict[str, dict[float, list[float]]]:
+    """Percentage depth errors per source and distance (``repeats`` noisy captures each), ``mu``
+    calibrated from the coherent pair at ``calibration_cm``; ``refine`` (:func:`onnx_refiner`) is
+    given the region fit (:func:`tdfd.dfd.region_fit.fit_region` with the calibrated ``mu``,
+    its uncertainty :func:`tdfd.dfd.calibrate.mu_relative_uncertainty` at ``calibration_cm``,
+    and ``refine_family``)."""
     sensor = paper_sensor()
     sources = paper_sources()
     top, left = (size[0] - tile) // 2, (size[1] - tile) // 2
     crop = lambda im: im[..., top : top + tile, left : left + tile]  # noqa: E731
     g = torch.Generator().manual_seed(seed)
-    # calibrate mu from the coherent pair at 46 cm, as in the paper
-    cal = [crop(t) for t in capture(camera, sources["coherent"], CALIBRATION_CM / 100, size, g, sensor, optics)]
-    mu = calibrate_mu(camera, [(cal[0], cal[1], CALIBRATION_CM / 100)], tile=tile, max_bin=max_bin, gate_sharpness=8.0)
+    # calibrate mu from one coherent pair at a known distance, as in the paper
+    cal = [crop(t) for t in capture(camera, sources["coherent"], calibration_cm / 100, size, g, sensor, optics)]
+    mu = calibrate_mu(camera, [(cal[0], cal[1], calibration_cm / 100)], tile=tile, max_bin=max_bin, gate_sharpness=8.0)
     cam = camera.replace(mu_px_per_m=mu)
+    mu_unc = mu_relative_uncertainty(camera, [calibration_cm / 100])
     est = FourierRatioDFD(cam, tile=tile, stride=tile, max_bin=max_bin, gate_sharpness=8.0)  # one large region: sharp gate
     out: dict[str, dict[float, list[float]]] = {"mu": {0.0: [mu]}}
     refined_from: dict[str, dict[float, list[str]]] = {}
@@ -121,7 +136,8 @@ def run_camera(camera: Camera, size: tuple[int, int], tile: int, max_bin: int, s
                 region = float(depth.flatten()[0])
                 errs.append(100.0 * (region - dcm / 100) / (dcm / 100))
                 if refine is not None:
-                    d_r, source = refine(i1, i2, region)
+                    fit = fit_region(crop(i1), crop(i2), cam, psf_family=refine_family, mu_uncertainty=mu_unc)
+                    d_r, source = refine(i1, i2, fit)
                     errs_r.append(100.0 * (d_r - dcm / 100) / (dcm / 100))
                     refined_from.setdefault(f"{name} refined", {}).setdefault(dcm, []).append(source)
             out[f"{name} analytic"][dcm] = errs
@@ -142,27 +158,42 @@ def told_family(choice: str, optics: str) -> str | None:
 
 
 def onnx_refiner(model_path: Path, psf_family: str | None = "exported"):
-    """The region's depth from the shipped ONNX model, pooled over the lit tiles as the autofocus pools them.
+    """The region's depth from the shipped ONNX model as the assisted autofocus computes it.
 
     The tiles with a cue in the lit pair (:func:`tdfd.autofocus.lit_tiles.pair_cue_mask`: the
     pattern's edges on the black target) are pooled by
-    :func:`tdfd.autofocus.lit_tiles.pool_lit_tiles` (the assist policy's pooling: a
-    confidence-weighted median and trimmed mean of inverse depth). When no lit tile reaches
-    :data:`tdfd.autofocus.lit_tiles.CONFIDENT_TILE` the model has no opinion there and the
-    one-region analytic estimate stands (``source = "region"``). ``psf_family``: what the
-    model's CNN is told (:class:`tdfd.runtime.DepthRuntime`; ``"exported"``: the file's own).
+    :func:`tdfd.autofocus.lit_tiles.pool_lit_tiles` (a confidence-weighted median and trimmed
+    mean of inverse depth) and fused with the one-region fit by inverse variance
+    (:func:`tdfd.autofocus.lit_tiles.fuse_with_region`, the controller's step 3: the tiles'
+    uncertainty from their confidences, :func:`tdfd.autofocus.evidence.estimate_uncertainty`;
+    the region's from its statistics, ``mu``'s calibration and the PSF family,
+    :func:`tdfd.region_fusion.region_sigma_dpt`). With no lit tile the region stands.
+    ``psf_family``: what the model's CNN is told (:class:`tdfd.runtime.DepthRuntime`;
+    ``"exported"``: the file's own) and what the region's uncertainty assumes.
+
+    No fusion when the lit tiles reach the field's outer ring of tiles
+    (:func:`tdfd.autofocus.lit_tiles.cue_touches_border`: the region would cut the pattern). The
+    returned ``refine(i1, i2, region)`` gives ``(depth_m, source)`` with ``source``
+    ``"region"`` when the region carried over 90 % of the weight (or stood alone), else ``"model"``.
     """
-    from tdfd.autofocus.lit_tiles import CONFIDENT_TILE
+    from tdfd.autofocus.evidence import estimate_uncertainty
+    from tdfd.autofocus.lit_tiles import cue_touches_border, fuse_with_region
+    from tdfd.contract import MODEL_KEY
     from tdfd.runtime import DepthRuntime  # imported lazily: optional
 
     rt = DepthRuntime(str(model_path), psf_family=psf_family)
+    meta = rt.metadata.get(MODEL_KEY)
+    b0 = float(meta.get("confidence_scale", 0.01)) if isinstance(meta, dict) else 0.01
 
-    def refine(i1: torch.Tensor, i2: torch.Tensor, region_depth_m: float) -> tuple[float, str]:
+    def refine(i1: torch.Tensor, i2: torch.Tensor, region) -> tuple[float, str]:
         lit = lit_tile_depths(rt, i1, i2)
-        if not lit.used.any() or not float(lit.confidence[lit.used].max()) >= CONFIDENT_TILE \
-                or not np.isfinite(lit.pooled.depth_m):
-            return region_depth_m, "region"
-        return lit.pooled.depth_m, "model"
+        if not lit.used.any() or not np.isfinite(lit.pooled.depth_m):
+            return 1.0 / region.inverse_depth, "region"
+        if cue_touches_border(lit.used, np.ones_like(lit.used)):  # the pattern reaches the field's edge
+            return lit.pooled.depth_m, "model"
+        sigma = estimate_uncertainty(lit.pooled, lit.confidence, lit.used, rt.camera, b0).sigma_dpt
+        fused, weight = fuse_with_region(lit.pooled, sigma, region)
+        return fused.depth_m, "region" if weight > 0.9 else "model"
 
     return refine
 
@@ -202,7 +233,7 @@ def plot(results: dict[str, dict[str, dict[float, list[float]]]], path: Path) ->
     fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 4.2), squeeze=False)
     for ax, (cam_name, res) in zip(axes[0], results.items()):
         for key, series in res.items():
-            if key in ("mu", "sources"):
+            if key in ("mu", "sources", "calibration_cm"):
                 continue
             xs = list(series)
             ys = [statistics.median(v) for v in series.values()]
@@ -212,7 +243,7 @@ def plot(results: dict[str, dict[str, dict[float, list[float]]]], path: Path) ->
         ax.axvline(56.8, color="grey", lw=0.5, ls=":")
         ax.set_xlabel("target distance d_o (cm)")
         ax.set_ylabel("depth error (%)")
-        ax.set_title(f"{cam_name}: mu calibrated at {CALIBRATION_CM:.0f} cm")
+        ax.set_title(f"{cam_name}: mu calibrated at {res['calibration_cm'][0.0][0]:g} cm", fontsize=9)
         ax.legend(fontsize=8)
         ax.grid(alpha=0.3)
     fig.suptitle("Simulated paper experiment (cf. Fig. 10): coherent pattern vs projector")
@@ -243,22 +274,82 @@ EXPLANATION = """
   5.3 um), so its frequency units or effective aperture must differ from what the text
   gives; our calibrated mu is the geometric value for the simulated (binned) pixels,
   recovered from the single pair at 46 cm as the paper does.
+- **Calibration distance (reference camera).** The reference camera's pair (1.7 / 2.7 dpt)
+  blurs both frames equally at 45.45 cm: a pair there has `D = 0` whatever mu, so the paper's
+  46 cm fixes this camera's mu to a few per cent only (the table above), and until 2026-11-26
+  this benchmark's analytic column carried that draw's error (1 m: -2.6 % with the draw it
+  used, -5.9 % with another). The reference camera now calibrates at 30 cm, 1.13 dpt from
+  its midpoint, as the paper's 46 cm is 1.2 dpt from its own camera's (1.035 m), and is run
+  over 3 draws; `tdfd calibrate` and `calibrate_mu` refuse such ill-conditioned pairs
+  (docs/CALIBRATION.md).
 - **Refined (reference camera).** The shipped CNN works on 64-px tiles; the analytic column
-  uses one 512-px region around the pattern. The refined estimate pools the model's tiles
-  as the autofocus does (`tdfd.autofocus.lit_tiles.pool_lit_tiles`): only the tiles with a
-  cue in the lit pair (`pair_cue_mask`: the pattern's edges; the dark target's tiles give
-  no depth), confidence-weighted; when no lit tile reaches confidence 0.1 (the model has
-  no opinion: far away, the 30-px stripes on a black target) the one-region analytic
-  estimate stands. The CNN is told the simulated optics' PSF family (`--psf-family optics`,
-  the default: what `tdfd calibrate` measures on a lens), since 2026-11-26; told nothing
-  (`--psf-family unknown`) it was worse than the analytic at 7 (coherent) and 8 (projector)
-  distances, up to 5.5 % at 75.4 cm (models/README.md).
+  uses one 512-px region around the pattern. The refined estimate is what the assisted
+  autofocus computes (`AssistedDFDController`, step 3): the model's tiles with a cue in the
+  lit pair (`pair_cue_mask`: the pattern's edges; the dark target's tiles give no depth)
+  pooled (`pool_lit_tiles`) and fused by inverse variance with one region fit
+  (`tdfd.dfd.region_fit.fit_region`, the same fit as the analytic column), whose
+  uncertainty counts its statistics, mu's calibration (0.22 % at 30 cm) and, for a lens
+  not known to be Gaussian, the Gaussian model's bias through a disk (0.6 x the distance in
+  dpt from 45.45 cm); the fusion is skipped when the pattern reaches the field's outer
+  ring of tiles or the two disagree by over 3 sigmas. The CNN is told the simulated
+  optics' PSF family (`--psf-family optics`, the default), which the region's uncertainty
+  assumes too. With Gaussian optics (the paper's model, and the analytic fit's) the region
+  fit is the better estimate and carries the refined one (the tiles alone were worse at 11
+  coherent / 8 projector distances, by up to 3.1 points: 75.4 cm, -3.6 %); through a disk
+  lens the Gaussian fit is off by up to 40 % (coherent) / 110 % (projector) and the tiles
+  carry it, except at 45 cm, where equal blur makes the fit exact for any PSF. What the
+  tiles cannot reach through a disk is the far end (coherent 100 cm: -10.9 %): there the
+  model's lit tiles have little confidence (at most 0.05-0.1) and the region little weight.
 """
+
+
+def conditioning_table(camera: Camera, size: tuple[int, int], draws: int, seed: int) -> tuple[str, dict[float, list[float]]]:
+    """``mu`` from one coherent pair at each of :data:`CONDITIONING_CM` over ``draws`` captures,
+    against the uncertainty :func:`tdfd.dfd.calibrate.mu_relative_uncertainty` predicts (markdown, and
+    the relative errors per distance)."""
+    from tdfd.dfd.calibrate import equal_blur_distance_m, mu_relative_uncertainty
+
+    sensor, src = paper_sensor(), paper_sources()["coherent"]
+    true_mu = 1.0 / (2.0 * camera.pixel_pitch_m)  # the simulated optics' (capture())
+    errs: dict[float, list[float]] = {}
+    for dcm in CONDITIONING_CM:
+        errs[dcm] = []
+        for k in range(draws):
+            g = torch.Generator().manual_seed(seed + 100 * k + int(dcm))
+            i1, i2 = capture(camera, src, dcm / 100, size, g, sensor)
+            mu = calibrate_mu(camera, [(i1, i2, dcm / 100)], tile=size[0], max_bin=64, gate_sharpness=8.0,
+                              max_relative_uncertainty=None)  # measured here, refused by default
+            errs[dcm].append(100.0 * (mu / true_mu - 1.0))
+    rows = [[f"{d:g}", f"{100 * mu_relative_uncertainty(camera, [d / 100]):.2f}", f"{statistics.median(v):+.2f}",
+             f"{min(v):+.2f} .. {max(v):+.2f}", f"{statistics.pstdev(v):.2f}"] for d, v in errs.items()]
+    table = markdown_table(["calibration distance (cm)", "predicted sd of mu % (0.005 dpt)", "mu error median %",
+                            "min .. max %", "sd %"], rows)
+    return (f"The reference camera's pair blurs both frames equally at {100 * equal_blur_distance_m(camera):.2f} cm: "
+            f"one coherent pair there measures no mu. mu from one pair per distance, {draws} draws "
+            "(`calibrate_mu(..., max_relative_uncertainty=None)`; by default it refuses 44.4-46.5 cm):\n\n" + table), errs
+
+
+def merge_draws(runs: list[dict[str, dict[float, list[float]]]]) -> dict[str, dict[float, list[float]]]:
+    """Concatenate the per-distance lists of several :func:`run_camera` results (``mu``: one per draw)."""
+    out: dict[str, dict] = {}
+    for run in runs:
+        for key, series in run.items():
+            if key == "sources":  # {"<light> refined": {distance: ["model" | "region", ...]}}
+                for k, per_d in series.items():
+                    for d, v in per_d.items():
+                        out.setdefault("sources", {}).setdefault(k, {}).setdefault(d, []).extend(v)
+                continue
+            for d, v in series.items():
+                out.setdefault(key, {}).setdefault(d, []).extend(v)
+    out["calibration_cm"] = {0.0: runs[0]["calibration_cm"][0.0][:1]}
+    return out
 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=3, help="noisy captures per distance")
+    ap.add_argument("--draws", type=int, default=3,
+                    help="reference camera: independent draws (calibration pair and captures), default 3")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--model", type=Path, default=ROOT / "models" / "reference.onnx")
     ap.add_argument("--optics", choices=["gaussian", "pillbox"], default="gaussian",
@@ -267,29 +358,50 @@ def main(argv: list[str] | None = None) -> None:
                     help="the PSF family the model's CNN is told: 'optics' (default: the simulated optics' own, as "
                          "'tdfd calibrate' measures it), gaussian, pillbox, unknown, or 'exported' (the file's own; "
                          "for a model without the family input)")
+    ap.add_argument("--reference-calibration-cm", type=float, default=REFERENCE_CALIBRATION_CM,
+                    help=f"the reference camera's calibration distance (default {REFERENCE_CALIBRATION_CM:g})")
     ap.add_argument("--threads", type=int, default=2, help="torch threads (1 on a loaded machine)")
+    ap.add_argument("--no-disk", action="store_true",
+                    help="skip the reference camera's second run through a disk (pillbox) lens")
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
+    if args.draws < 1 or args.repeats < 1:
+        ap.error("--draws and --repeats must be >= 1")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(max(1, args.threads))
     results: dict[str, dict[str, dict[float, list[float]]]] = {}
     pc = paper_camera(4)
     # the paper's blur (RMS up to ~130 px at 5.3 um) spreads the stripes far beyond a 1200-row
     # sensor at 30 cm: simulate a wider field (640 x 640 binned pixels) so the region holds it
-    results["paper camera (4x binned)"] = run_camera(pc, (640, 640), tile=576, max_bin=48, seed=args.seed,
-                                                     repeats=args.repeats, optics=args.optics)
+    paper_run = run_camera(pc, (640, 640), tile=576, max_bin=48, seed=args.seed, repeats=args.repeats, optics=args.optics)
+    paper_run["calibration_cm"] = {0.0: [CALIBRATION_CM]}
+    results["paper camera (4x binned)"] = paper_run
     ref = Camera.preset("reference")
     told = told_family(args.psf_family, args.optics)
-    refine = onnx_refiner(args.model, told) if args.model.exists() else None
-    results["reference camera"] = run_camera(ref, REFERENCE_FIELD, tile=REFERENCE_FIELD[0], max_bin=64, seed=args.seed + 1,
-                                             repeats=args.repeats, refine=refine, optics=args.optics)
+    optics_runs = [(args.optics, told)]
+    if args.optics == "gaussian" and not args.no_disk:  # the same reference-camera runs through a disk lens
+        optics_runs.append(("pillbox", told_family(args.psf_family, "pillbox")))
+    for optics, family in optics_runs:
+        refine = onnx_refiner(args.model, family) if args.model.exists() else None
+        runs = []
+        for k in range(args.draws):
+            run = run_camera(ref, REFERENCE_FIELD, tile=REFERENCE_FIELD[0], max_bin=64, seed=args.seed + 1 + k,
+                             repeats=args.repeats, refine=refine, optics=optics,
+                             calibration_cm=args.reference_calibration_cm,
+                             refine_family=family if family in ("gaussian", "pillbox") else None)
+            run["calibration_cm"] = {0.0: [args.reference_calibration_cm]}
+            runs.append(run)
+        lens = "" if optics == args.optics else f", {optics} (disk) optics, CNN told {family or 'nothing'}"
+        results[f"reference camera ({args.draws} draws{lens})"] = merge_draws(runs)
+    conditioning, _ = conditioning_table(ref, REFERENCE_FIELD, draws=6, seed=args.seed + 1000)
     if not args.no_write:  # --no-write leaves docs/ (the figure included) alone
         plot(results, FIGURE)
     sections = []
     for cam_name, res in results.items():
-        mu = res["mu"][0.0][0]
+        mus = ", ".join(f"{m:.4g}" for m in res["mu"][0.0])
+        cal_cm = res["calibration_cm"][0.0][0]
         sources = res.get("sources", {})
-        keys = [k for k in res if k not in ("mu", "sources")]
+        keys = [k for k in res if k not in ("mu", "sources", "calibration_cm")]
 
         def cell(k: str, d: float) -> str:
             region = sum(1 for x in sources.get(k, {}).get(d, []) if x == "region")
@@ -305,26 +417,37 @@ def main(argv: list[str] | None = None) -> None:
             k_r, k_a = f"{light} refined", f"{light} analytic"
             if k_r not in res:
                 continue
-            worse = [d for d in DISTANCES_CM if abs(statistics.median(res[k_r][d])) > abs(statistics.median(res[k_a][d]))]
+            margin = {d: abs(statistics.median(res[k_r][d])) - abs(statistics.median(res[k_a][d])) for d in DISTANCES_CM}
+            worse = [d for d in DISTANCES_CM if margin[d] > 0]
+            within = [d for d in worse if margin[d] > 0.1]
             checks.append(f"- {light}: refined no worse than analytic at every distance: "
-                          + ("met" if not worse else f"NOT met (worse at {', '.join(f'{d:g}' for d in worse)} cm)"))
+                          + ("met" if not worse else f"NOT met exactly (worse at {', '.join(f'{d:g}' for d in worse)} cm, "
+                                                     f"by at most {max(margin.values()):.2f} points); within 0.1 "
+                                                     "points (the table's precision): "
+                                                     + ("met" if not within else
+                                                        f"NOT met (at {', '.join(f'{d:g}' for d in within)} cm)")))
         if "coherent refined" in res:
             over = [d for d in DISTANCES_CM if 30 <= d <= 100 and abs(statistics.median(res["coherent refined"][d])) > 5]
             checks.append("- coherent refined |error| <= 5 % at every distance 30-100 cm: "
                           + ("met" if not over else f"NOT met (over at {', '.join(f'{d:g}' for d in over)} cm)"))
         summary += "."
         if checks:
-            summary += "\n\n" + "\n".join(checks) + ("\n\n(region n/m: in n of the m captures no lit tile reached "
-                                                   "confidence 0.1, and the one-region analytic estimate stands)")
-        sections.append(f"### {cam_name}\n\nCalibrated mu = {mu:.4g} px/m. {summary}\n\n{table}\n")
-        print(f"{cam_name}: mu = {mu:.4g}\n{table}\n{summary}\n")
+            summary += "\n\n" + "\n".join(checks) + ("\n\n(region n/m: in n of the m captures the one-region fit "
+                                                   "carried over 90 % of the refined estimate's weight)")
+        sections.append(f"### {cam_name}\n\nmu calibrated from one coherent pair at {cal_cm:g} cm: {mus} px/m. "
+                        f"{summary}\n\n{table}\n")
+        print(f"{cam_name}: mu = {mus}\n{table}\n{summary}\n")
+    print(conditioning)
     body = (
         f"Black target (albedo 0.08, ambient 0.05) lit by the paper's two-stripe mask; {args.optics} optics\n"
         f"(the model's CNN told the PSF family: {told or 'unknown'}; --psf-family {args.psf_family})\n"
         "(RMS radius r_b / 2), 12-bit Poisson-Gaussian sensor (20 000 e- full well, 3 e- read\n"
-        f"noise); mu calibrated from the coherent pair at {CALIBRATION_CM:.0f} cm; one region covering the\n"
-        f"pattern; median of {args.repeats} noisy captures per distance.\n\n"
-        f"![simulated Fig. 10](paper_fig10.png)\n\n" + "\n".join(sections) + EXPLANATION)
+        f"noise); mu calibrated from one coherent pair at a known distance ({CALIBRATION_CM:g} cm for the paper's\n"
+        f"camera, {args.reference_calibration_cm:g} cm for the reference camera: see *Calibration distance* below); one\n"
+        f"region covering the pattern; median of {args.repeats} noisy captures per distance (reference camera:\n"
+        f"of {args.draws} draws x {args.repeats}).\n\n"
+        f"![simulated Fig. 10](paper_fig10.png)\n\n" + "\n".join(sections)
+        + "\n### Calibration distance\n\n" + conditioning + "\n" + EXPLANATION)
     if not args.no_write:
         update_section("paper", "The paper's experiment, simulated (Fig. 10)", body,
                        "python3 dev.py python -m benchmarks.paper_experiment")

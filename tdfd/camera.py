@@ -251,6 +251,22 @@ class Camera:
         return (al1 * a1 - al2 * a2) / quad
 
     @property
+    def equal_blur_inverse_depth(self) -> float | None:
+        """Inverse depth (1/m) at which the pair blurs both frames equally, ``sigma1 = -sigma2``
+        (between the two frames' focus distances): ``(alpha_1 + alpha_2) / (a_1 + a_2)`` of
+        :meth:`sigma_lines_px`; ``None`` when it is not positive. There ``D = 0`` whatever
+        ``mu`` and the PSF's shape: a pair measures the distance, not ``mu``
+        (:mod:`tdfd.dfd.calibrate`, *Conditioning*).
+
+        Example:
+            >>> round(Camera.preset("reference").equal_blur_inverse_depth, 6)   # (1.7 + 2.7) / 2
+            2.2
+        """
+        (al1, a1), (al2, a2) = self.sigma_lines_px(1.0)
+        q = (al1 + al2) / (a1 + a2)
+        return q if q > 0 else None
+
+    @property
     def sigma_difference_px(self) -> float:
         """``sigma1 - sigma2 = mu A d_s / 2 (1/F1 - 1/F2)`` in pixels (paper eq. 6).
 

@@ -16,6 +16,16 @@ One focus request with a light allowed, by default (``ambient_frame=False``):
    of the frame's noise floor; on a texture-less target that is where the pattern's
    edges are), so tiles without a cue give no depth, confident or not; no such tile in
    the ROI is a low-confidence estimate: contrast-detect AF takes over.
+3. **One region fit** (``region_fit=True``, the default): when no tile with a cue lies on
+   the ROI's outer ring of tiles (the pattern lies inside the ROI: a pattern, or a texture,
+   that reaches the ROI's edge would be cut by the region), one Fourier-ratio fit over the
+   ROI's central square of the lit pair (:func:`tdfd.dfd.region_fit.fit_region`, the
+   paper's one region around the pattern) is fused with the pooled tiles by inverse
+   variance (:func:`~tdfd.autofocus.lit_tiles.fuse_with_region`); its uncertainty counts
+   its statistics, ``mu``'s uncertainty and, for a lens not known to be Gaussian
+   (``psf_family``), the Gaussian model's bias through a disk, so it carries the estimate
+   near the distance the pair blurs equally and on a Gaussian lens, the tiles elsewhere.
+   Only the depth changes; the trust rules read the tiles' confidence as before.
 
 With the ambient frame (``ambient_frame=True``, implied by ``subtract_ambient``):
 
@@ -63,11 +73,13 @@ from typing import Generator
 import numpy as np
 
 from ..camera import Camera
-from ..errors import InputError
+from ..region_fusion import DEFAULT_MU_UNCERTAINTY, RegionFit
+from ..errors import InputError, TdfdError
 from ..pair_check import SATURATION_LEVEL
 from .aggregate import DepthAggregate, aggregate_depth
 from .dfd import DFDController
-from .lit_tiles import lit_tile_mask, pair_cue_mask, pool_lit_tiles, subtract_ambient
+from .evidence import estimate_uncertainty
+from .lit_tiles import cue_touches_border, fuse_with_region, lit_tile_mask, pair_cue_mask, pool_lit_tiles, subtract_ambient
 from .machine import Abort, Gen
 from .messages import Command, Estimation, Frame, Observation, State
 from .roi import Roi, roi_tile_mask
@@ -101,6 +113,8 @@ class LitPair:
         roi_tiles: tiles of the ROI (after estimation).
         subtracted: the ambient frame was subtracted from the lit ones.
         reason: why the light was used.
+        region: the region fit fused with the lit tiles (``None``: none).
+        region_weight: its share of the fused estimate's weight in [0, 1].
     """
 
     pattern: str
@@ -112,6 +126,8 @@ class LitPair:
     roi_tiles: int = 0
     subtracted: bool = False
     reason: str = ""
+    region: RegionFit | None = None
+    region_weight: float = 0.0
 
 
 class AssistedDFDController(DFDController):
@@ -138,6 +154,12 @@ class AssistedDFDController(DFDController):
             with the shipped model: 0.01 instead of its 0.003 sends two right lit estimates
             (confidence 0.007) to contrast AF, which ends out of focus on them.
         ambient_pedestal: level added back after the subtraction (intensity units).
+        region_fit: fuse one region fit over the ROI with the lit tiles (module docs, step 3).
+            It does not register focus breathing: the bench and ``tdfd autofocus`` turn it
+            off for an estimator that registers the pair (:func:`~tdfd.autofocus.estimators.estimator_breathing`).
+        region_mu_uncertainty: the relative uncertainty of the camera's ``mu`` the region fit
+            counts (default :data:`tdfd.region_fusion.DEFAULT_MU_UNCERTAINTY`; a known-distance
+            calibration records its own, ``calibration.mu_relative_uncertainty``).
         ambient_frame: ``True``: the unlit ``f1`` probes the ROI's texture and is the
             ambient frame of the lit tiles (three frames before a verification frame);
             ``False``: with a light named, the DFD pair is lit from its first frame (two
@@ -157,14 +179,19 @@ class AssistedDFDController(DFDController):
     Attributes:
         lit: the present cycle's :class:`LitPair` (``None`` if it ran unlit).
         lit_cycles: focus cycles that used the light.
+        region_fits: region fits made (step 3; the simulated bench charges their time).
     """
 
     def __init__(self, camera: Camera, *, illumination: str | None = None, subtract_ambient: bool = False,
                  light_texture_snr: float = 1.2, retry_texture_snr: float = 3.0,
                  lit_k_noise: float = 3.0, lit_rel: float = 0.05, lit_min_confidence: float | None = None,
                  ambient_pedestal: float = 0.02, ambient_frame: bool | None = None,
-                 lit_max_saturated: float = 0.01, **kwargs) -> None:
+                 lit_max_saturated: float = 0.01, region_fit: bool = True,
+                 region_mu_uncertainty: float = DEFAULT_MU_UNCERTAINTY, **kwargs) -> None:
         super().__init__(camera, **kwargs)
+        if not (math.isfinite(region_mu_uncertainty) and 0 <= region_mu_uncertainty < 1):
+            raise InputError(f"region_mu_uncertainty must be in [0, 1), got {region_mu_uncertainty}")
+        self.region_fit, self.region_mu_uncertainty = bool(region_fit), float(region_mu_uncertainty)
         if illumination is not None and not isinstance(illumination, str):
             raise InputError(f"illumination must be a pattern name or None, got {illumination!r}")
         if lit_min_confidence is not None and not 0 <= lit_min_confidence <= 1:
@@ -187,6 +214,7 @@ class AssistedDFDController(DFDController):
         self.ambient_pedestal = float(ambient_pedestal)
         self.lit: LitPair | None = None
         self.lit_cycles = 0
+        self.region_fits = 0
         self._unlit_pair: tuple[Frame, Frame] | None = None
         self._retry_lit = False
         self._retry_reason = ""
@@ -318,6 +346,24 @@ class AssistedDFDController(DFDController):
         agg, pooled = pool_lit_tiles(obs.depth_m, obs.confidence, covered, mask)
         lit.roi_tiles, lit.lit_tiles = int(mask.sum()), int(pooled.sum())
         log.info("lit pair (%s): the pattern covers %d of the ROI's %d tiles", lit.pattern, lit.lit_tiles, lit.roi_tiles)
+        if (self.region_fit and lit.lit_f2 is not None and agg.inliers > 0 and math.isfinite(agg.inverse_depth)
+                and not cue_touches_border(pooled, mask)):
+            from ..dfd.region_fit import fit_region  # torch: loaded only when a lit pair is fitted
+
+            try:
+                region = fit_region(roi.crop(lit.lit_f1.image), roi.crop(lit.lit_f2.image), self.camera,
+                                    psf_family=self.psf_family, mu_uncertainty=self.region_mu_uncertainty)
+            except TdfdError as exc:  # a small ROI, odd frames: the tiles alone
+                log.info("no region fit: %s", exc)
+                return agg, pooled
+            sigma = estimate_uncertainty(agg, obs.confidence, pooled, self.camera, self.confidence_scale).sigma_dpt
+            self.region_fits += 1
+            fused, lit.region_weight = fuse_with_region(agg, sigma, region)
+            lit.region = region
+            log.info("region fit %.4f +- %.4f dpt, lit tiles %.4f +- %.4f dpt: fused %.4f dpt (region weight %.2f)",
+                     region.inverse_depth, region.sigma_dpt, agg.inverse_depth, sigma, fused.inverse_depth,
+                     lit.region_weight)
+            return fused, pooled
         return agg, pooled
 
     def _verify_light(self) -> str | None:
@@ -353,7 +399,7 @@ class AssistedDFDController(DFDController):
             return {"light": None, "lit_dropped": self.lit_dropped}
         return {"light": self.lit.pattern, "lit_tiles": self.lit.lit_tiles, "roi_tiles": self.lit.roi_tiles,
                 "ambient_subtracted": self.lit.subtracted, "light_reason": self.lit.reason,
-                "lit_cycles": self.lit_cycles}
+                "lit_cycles": self.lit_cycles, "region_weight": round(self.lit.region_weight, 3)}
 
 
 # the hooks this policy overrides or uses in DFDController / StateMachine:

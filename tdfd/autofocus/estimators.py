@@ -29,7 +29,7 @@ from ..runtime import default_model_path as runtime_default_model_path
 from .threads import torch_threads
 
 __all__ = ["OnnxEstimator", "AnalyticEstimator", "load_estimator", "default_model_path", "suggested_min_confidence",
-           "suggested_confidence_scale", "ONNX_INTRA_THREADS"]
+           "suggested_confidence_scale", "estimator_breathing", "ONNX_INTRA_THREADS"]
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +74,13 @@ def suggested_min_confidence(estimator: Any) -> float:
     scale (tdfd.model). Estimators may carry their own ``min_confidence``; default 0.01.
     """
     return float(getattr(estimator, "min_confidence", 0.01))
+
+
+def estimator_breathing(estimator: Any) -> float:
+    """The focus breathing ``m`` (1/dpt) an estimator registers its pairs for (0: none): an
+    :class:`OnnxEstimator` whose model registers it, or a
+    :class:`~tdfd.autofocus.registered.BreathingRegistered` wrapper."""
+    return float(getattr(estimator, "magnification_per_dpt", 0.0) or 0.0)
 
 
 def suggested_confidence_scale(estimator: Any) -> float:
@@ -138,6 +145,11 @@ class OnnxEstimator:
         self.tile, self.stride = int(self._runtime.tile), int(self._runtime.stride)
         self.last_problem: str | None = None
         self.confidence_scale = _confidence_scale(self._runtime.metadata.get(MODEL_KEY))
+
+    @property
+    def magnification_per_dpt(self) -> float:
+        """The focus breathing the model registers in its graph (``tdfd.breathing``; 0: none)."""
+        return float(self._runtime.magnification_per_dpt or 0.0)
 
     @property
     def takes_psf_family(self) -> bool:

@@ -38,7 +38,7 @@ from ..light.guard import DEFAULT_LIMITS, LightGuard, LightLimits, exposure
 from .assist import AssistedDFDController
 from .contrast import ContrastController
 from .dfd import DFDController
-from .estimators import suggested_confidence_scale, suggested_min_confidence
+from .estimators import estimator_breathing, suggested_confidence_scale, suggested_min_confidence
 from .interfaces import Estimator, run_estimator
 from .lens_command import command_lens
 from .machine import StateMachine, drive
@@ -312,7 +312,8 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
                               psf_sigma_scale=psf_sigma_scale,
                               min_confidence=suggested_min_confidence(estimator) if min_confidence is None
                               else min_confidence)
-            ctrl = (AssistedDFDController(optics, illumination=pattern, **dfd_kwargs) if pattern is not None
+            ctrl = (AssistedDFDController(optics, illumination=pattern, region_fit=estimator_breathing(estimator) == 0.0,
+                                          **dfd_kwargs) if pattern is not None
                     else DFDController(optics, **dfd_kwargs))
         else:
             if dry_run:

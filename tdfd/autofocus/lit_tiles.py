@@ -27,16 +27,21 @@ Example:
 
 from __future__ import annotations
 
+import dataclasses
+import math
+
 import numpy as np
 
-from ..errors import ShapeError
+from ..region_fusion import RegionFit, fuse_inverse_depths
+from ..errors import InputError, ShapeError
 from .aggregate import DepthAggregate, aggregate_depth
 
 #: a tile confidence the shipped model reaches only where it is right: on held-out planes its
 #: tiles above 0.1 have a median error of 1.6 % (tdfd.runtime, models/reference_report.md).
 CONFIDENT_TILE = 0.1
 
-__all__ = ["lit_tile_mask", "pair_cue_mask", "pool_lit_tiles", "CONFIDENT_TILE", "pattern_contrast", "subtract_ambient", "difference_noise_sigma"]
+__all__ = ["lit_tile_mask", "pair_cue_mask", "pool_lit_tiles", "fuse_with_region", "cue_touches_border", "CONFIDENT_TILE", "pattern_contrast",
+           "subtract_ambient", "difference_noise_sigma"]
 
 
 def difference_noise_sigma(diff: np.ndarray) -> float:
@@ -169,6 +174,70 @@ def pool_lit_tiles(depth_m: np.ndarray, confidence: np.ndarray, lit: np.ndarray,
         return DepthAggregate(depth_m=float("nan"), inverse_depth=float("nan"), confidence=0.0,
                               spread_dpt=float("nan"), tiles=tiles, inliers=0), mask
     return aggregate_depth(depth_m, confidence, mask), mask
+
+
+def fuse_with_region(pooled: DepthAggregate, tiles_sigma_dpt: float, region: RegionFit,
+                     max_discrepancy: float = 3.0) -> tuple[DepthAggregate, float]:
+    """The lit ROI's depth from its pooled tiles and one region fit together (:mod:`tdfd.region_fusion`).
+
+    The pooled tiles' inverse depth (uncertainty ``tiles_sigma_dpt``, e.g.
+    :func:`tdfd.autofocus.evidence.estimate_uncertainty`) and the region's are averaged by
+    inverse variance; the aggregate keeps the tiles' confidence, spread and counts (what the
+    controller's trust rules read), only its depth changes. When the two disagree by more
+    than ``max_discrepancy`` combined standard uncertainties the region is not used: one fit
+    over an ROI that holds more than one depth (an occluder, a slanted or textured background
+    under the pattern) mixes them, where the tiles' robust pooling does not.
+
+    Args:
+        pooled: :func:`pool_lit_tiles`'s aggregate (a NaN depth: no lit tile, the region alone).
+        tiles_sigma_dpt: its standard uncertainty (dpt; ``inf``: no weight).
+        region: :func:`tdfd.dfd.region_fit.fit_region` over the ROI.
+        max_discrepancy: the disagreement (in combined standard uncertainties) beyond which the
+            region is left out.
+
+    Returns:
+        ``(aggregate, region weight)``: the fused aggregate and the region's share of the weight in [0, 1].
+
+    Example:
+        >>> pooled = DepthAggregate(0.5, 2.0, 0.3, 0.01, 9, 9)
+        >>> fused, w = fuse_with_region(pooled, 0.03, RegionFit(2.04, 0.01, 0.004, 0.9, 512))
+        >>> round(fused.inverse_depth, 3), round(w, 2), fused.confidence
+        (2.036, 0.9, 0.3)
+        >>> fuse_with_region(pooled, 0.03, RegionFit(2.5, 0.01, 0.004, 0.9, 512))[1]   # 16 sigmas apart: left out
+        0.0
+    """
+    q_t = pooled.inverse_depth
+    s_t = tiles_sigma_dpt if math.isfinite(q_t) and q_t > 0 else math.inf
+    if math.isnan(s_t) or s_t <= 0:
+        raise InputError(f"tiles_sigma_dpt must be > 0, got {tiles_sigma_dpt}")
+    q, _, chi = fuse_inverse_depths(q_t if math.isfinite(q_t) else 0.0, s_t, region.inverse_depth, region.sigma_dpt)
+    if chi > max_discrepancy:
+        return pooled, 0.0
+    w_r = 0.0 if math.isinf(region.sigma_dpt) else (1.0 if math.isinf(s_t) else s_t**2 / (s_t**2 + region.sigma_dpt**2))
+    depth = 1.0 / q if q > 0 else math.inf
+    return dataclasses.replace(pooled, depth_m=depth, inverse_depth=q), w_r
+
+
+def cue_touches_border(cue: np.ndarray, roi_tiles: np.ndarray) -> bool:
+    """Whether a tile with a cue lies on the outer ring of the ROI's tiles: the pattern (or a
+    texture) reaches beyond the region, and one fit over the region would cut it (paper sec. 4:
+    one region *covering* the pattern). ``cue``, ``roi_tiles``: ``(h, w)`` bool tile masks.
+
+    Example:
+        >>> roi = np.ones((5, 6), bool); cue = np.zeros((5, 6), bool); cue[2, 2:4] = True
+        >>> cue_touches_border(cue, roi)
+        False
+        >>> cue[2, 5] = True
+        >>> cue_touches_border(cue, roi)
+        True
+    """
+    rows, cols = np.nonzero(roi_tiles)
+    if rows.size == 0:
+        return True
+    r0, r1, c0, c1 = rows.min(), rows.max(), cols.min(), cols.max()
+    inner = np.zeros_like(roi_tiles, dtype=bool)
+    inner[r0 + 1:r1, c0 + 1:c1] = True
+    return bool((cue & roi_tiles & ~inner).any())
 
 
 def subtract_ambient(lit: np.ndarray, ambient: np.ndarray, pedestal: float = 0.02) -> np.ndarray:

@@ -39,8 +39,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--psf-family", choices=("measure", "gaussian", "pillbox", "unknown"), default="measure",
                    help="the lens's PSF family written to the camera file: measured from the scenes with three or more "
                         "frames (default; left out when they do not decide it), given, or left out")
+    p.add_argument("--max-mu-uncertainty", type=_fraction, default=None, metavar="FRACTION",
+                   help="known-distance route: refuse pairs that leave mu more uncertain than this relative standard "
+                        "uncertainty (default 0.05): a target near the distance where the pair blurs both frames "
+                        "equally measures no mu")
     p.add_argument("--no-plot", action="store_true", help="do not write the fit plot")
     p.set_defaults(func=run)
+
+
+def _fraction(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a fraction such as 0.05, got {text!r}") from None
+    if not (0.0 < value < 1.0):
+        raise argparse.ArgumentTypeError(f"expected a fraction in (0, 1), got {text!r}")
+    return value
 
 
 def _psf_family(choice: str, frames: Sequence[Any], camera_file: Any) -> tuple[str | None, float, str]:
@@ -79,8 +93,11 @@ def run(args: argparse.Namespace) -> int:
     route = args.route
     if route == "auto":
         route = "self" if any(f.metadata.pair is None for f in frames) else "known-distance"
-    fit = calibrate_self if route == "self" else calibrate_known_distance
-    result = fit(frames, nominal, region=args.region, nominal_path=str(args.camera))
+    if route == "self":
+        result = calibrate_self(frames, nominal, region=args.region, nominal_path=str(args.camera))
+    else:
+        extra = {} if args.max_mu_uncertainty is None else {"max_mu_uncertainty": args.max_mu_uncertainty}
+        result = calibrate_known_distance(frames, nominal, region=args.region, nominal_path=str(args.camera), **extra)
     result.camera_file.calibration["folder"] = (  # type: ignore[index]
         str(args.folders[0]) if len(args.folders) == 1 else [str(f) for f in args.folders])
     family, scale, family_line = _psf_family(args.psf_family, frames, result.camera_file)
@@ -93,6 +110,9 @@ def run(args: argparse.Namespace) -> int:
     cam = result.camera_file.camera
     print(f"  K = {result.k_px_per_dpt:.5g} px/dpt  ->  mu = {cam.mu_px_per_m:.5g} px/m "
           f"(nominal {nominal.camera.mu_px_per_m:.5g})")
+    if "mu_relative_uncertainty" in result.camera_file.calibration:  # type: ignore[operator]
+        print(f"  mu standard uncertainty {100 * result.camera_file.calibration['mu_relative_uncertainty']:.2f} % "
+              f"(pairs' in-focus power uncertain by {result.camera_file.calibration['pair_power_sd_dpt']:.3g} dpt)")
     print(f"  in-focus offset B = {result.in_focus_offset_dpt:+.4f} dpt ({result.offset_source})")
     print(f"  -> fixed_focal_length_m = {cam.fixed_focal_length_m:.6g} (nominal {nominal.camera.fixed_focal_length_m:.6g}); "
           f"power offset vs datasheet {result.camera_file.calibration['power_offset_vs_datasheet_dpt']:+.4f} dpt")

@@ -40,13 +40,15 @@ import numpy as np
 from .. import __version__
 from ..camera_file import CameraFile
 from ..capture.folder import CaptureFolderError, CaptureFrame
+from ..dfd.calibrate import MAX_MU_UNCERTAINTY, PAIR_POWER_SD_DPT
 from ..errors import InputError
 from .focus import focus_measure, region_grid, symmetric_peak
 from .measure import PREDICTION_REGION_PX, PairMeasurement, measure_pair
 from .registration import fit_magnification_per_dpt, relative_magnification
 
 __all__ = ["CalibrationError", "Scene", "CalibrationResult", "group_scenes", "estimate_breathing",
-           "sweep_peaks", "calibrate_known_distance", "calibrate_self", "MIN_SWEEP_FRAMES", "MAX_BLUR_PX"]
+           "sweep_peaks", "calibrate_known_distance", "calibrate_self", "k_relative_uncertainty", "MIN_SWEEP_FRAMES",
+           "MAX_BLUR_PX"]
 
 log = logging.getLogger(__name__)
 
@@ -270,13 +272,52 @@ def _provenance(route: str, source: str, nominal_path: str | None, frames: int, 
 
 
 # ---------------------------------------------------------------------------- known distance
+def k_relative_uncertainty(design: np.ndarray, power_sd_dpt: float) -> float:
+    r"""Relative standard uncertainty of ``K`` (and of ``mu``) from a known-distance fit's design.
+
+    The fit is ``y = D / (P_a - P_b) = X theta`` with ``theta[0] = K^2`` and ``design`` ``X``
+    (one column ``P_a + P_b - 2 P*`` for one distance; two, ``(P_a + P_b - 2/d, -2)``, for
+    several). An error ``dP`` of a pair's in-focus power moves ``y`` by ``2 K^2 dP``, so
+    ``sd(K^2) / K^2 = 2 power_sd sqrt((X^T X)^-1_00)`` and ``K`` has half that. Pairs centred
+    on the target's focus (``P_a + P_b = 2 P*``: both frames equally blurred) measure no
+    ``K``: :mod:`tdfd.dfd.calibrate`, *Conditioning*.
+    """
+    x = np.asarray(design, dtype=np.float64).reshape(len(design), -1)
+    try:
+        cov = np.linalg.inv(x.T @ x)
+    except np.linalg.LinAlgError:
+        return math.inf
+    c00 = float(cov[0, 0])
+    return power_sd_dpt * math.sqrt(c00) if c00 >= 0 and math.isfinite(c00) else math.inf
+
+
+def _check_conditioning(frames: Sequence[CaptureFrame], distances: Sequence[float], pa: np.ndarray, pb: np.ndarray,
+                        u: float, sd_power: float, max_mu_uncertainty: float | None) -> None:
+    """Raise :class:`CalibrationError` when the known-distance pairs leave ``mu`` more uncertain than allowed."""
+    if max_mu_uncertainty is None or u <= max_mu_uncertainty:
+        return
+    mids = ", ".join(f"{v:g}" for v in sorted({float(v) for v in (pa + pb) / 2}))
+    raise CalibrationError(
+        f"{_where(frames)}: the pairs at {', '.join(f'{v:g}' for v in distances)} m leave mu uncertain by {u:.1%} "
+        f"(over {max_mu_uncertainty:.1%}) for a {sd_power:.3g} dpt error of a pair's in-focus power: a target whose "
+        f"in-focus power is near the pair's midpoint ({mids} dpt) blurs both frames equally and measures no mu; "
+        "add a pair at a distance farther from it (or --max-mu-uncertainty)")
+
+
 def calibrate_known_distance(frames: Sequence[CaptureFrame], nominal: CameraFile, region: int = 64,
-                             nominal_path: str | None = None, min_confidence: float = 0.5) -> CalibrationResult:
+                             nominal_path: str | None = None, min_confidence: float = 0.5,
+                             max_mu_uncertainty: float | None = MAX_MU_UNCERTAINTY,
+                             power_sd_dpt: float = PAIR_POWER_SD_DPT) -> CalibrationResult:
     """The paper's route: pairs of a planar target at known distances.
 
+    ``max_mu_uncertainty``: the largest relative standard uncertainty of ``mu`` the pairs may
+    leave (:func:`k_relative_uncertainty`, with each pair's in-focus power uncertain by
+    ``power_sd_dpt`` or the fit's residual RMS, whichever is larger); ``None`` accepts any.
+    The uncertainty is recorded in the camera file's ``calibration.mu_relative_uncertainty``.
+
     Raises:
-        CalibrationError: no pair with a known distance, or measurements that give
-            ``K^2 <= 0``.
+        CalibrationError: no pair with a known distance, measurements that give
+            ``K^2 <= 0``, or pairs too near the distance their frames blur equally.
     """
     scenes = [s for s in group_scenes(frames) if s.distance_m is not None and s.pairs]
     if not scenes:
@@ -298,7 +339,13 @@ def calibrate_known_distance(frames: Sequence[CaptureFrame], nominal: CameraFile
     pa, pb, d, dsq = (np.array([r[i] for r in rows], dtype=np.float64) for i in range(4))
     y = dsq / (pa - pb)
     distances = sorted({float(v) for v in d})
-    if len(distances) >= 2:
+    several = len(distances) >= 2
+    # conditioning first (it needs the design only): a pair centred on its target's focus measures no K
+    pre_design = (np.stack([pa + pb - 2 / d, -2 * np.ones_like(d)], 1) if several
+                  else (pa + pb - 2 * (1 / d + _datasheet_offset(nominal)))[:, None])
+    _check_conditioning(frames, distances, pa, pb, k_relative_uncertainty(pre_design, power_sd_dpt), power_sd_dpt,
+                        max_mu_uncertainty)
+    if several:
         design = np.stack([pa + pb - 2 / d, -2 * np.ones_like(d)], 1)
         (a2, a2b), *_ = np.linalg.lstsq(design, y, rcond=None)
         if a2 <= 0:
@@ -316,9 +363,16 @@ def calibrate_known_distance(frames: Sequence[CaptureFrame], nominal: CameraFile
     model = a2 * (pa + pb - 2 * (1 / d + b_fit))
     res = (y - model) / (2 * a2)  # dpt: error of the pair's in-focus power
     residuals = {"pairs": res}
+    n_par = 2 if len(distances) >= 2 else 1
+    rms = float(np.sqrt(np.sum(res ** 2) / (len(res) - n_par))) if len(res) > n_par else 0.0
+    sd_power = max(power_sd_dpt, rms)
+    u = k_relative_uncertainty(design if several else x[:, None], sd_power)
+    _check_conditioning(frames, distances, pa, pb, u, sd_power, max_mu_uncertainty)
     for (p1, p2, dd, _, name), r in zip(rows, res):
         log.info("pair %s (%.3f/%.3f dpt) at %.3f m: residual %+.4f dpt", name, p1, p2, dd, r)
     prov = _provenance("known-distance", source, nominal_path, len(frames), k, b_fit, nominal, m, residuals)
+    prov["mu_relative_uncertainty"] = u
+    prov["pair_power_sd_dpt"] = sd_power
     plot = {"route": "known-distance", "inv_d": 1 / d, "y": y, "pa": pa, "pb": pb, "a2": a2, "b": b_fit,
             "breathing": breath}
     return CalibrationResult(_fitted_file(nominal, k, b_fit, m, prov), "known-distance", k, b_fit, source, m,

@@ -50,13 +50,13 @@ from ...light.guard import DEFAULT_LIMITS, LightGuard, LightLimits
 from ..assist import AssistedDFDController
 from ..contrast import ContrastController
 from ..dfd import DFDController
-from ..estimators import suggested_confidence_scale, suggested_min_confidence
+from ..estimators import estimator_breathing, suggested_confidence_scale, suggested_min_confidence
 from ..interfaces import Estimator
 from ..machine import StateMachine, drive
 from ..messages import AFResult
 from ..roi import Roi
 from .camera import VirtualCamera
-from .charges import cross_blur_wall_s, estimator_wall_s, evidence_wall_s, pair_cross_blur_wall_s
+from .charges import cross_blur_wall_s, estimator_wall_s, evidence_wall_s, pair_cross_blur_wall_s, region_fit_wall_s
 from .clock import SimClock
 from .lens import EmulatedLens
 from .noise import SensorNoise
@@ -108,6 +108,8 @@ class SimBench:
         cross_blur_s: likewise per cross-blur focus search (:mod:`tdfd.autofocus.cross_blur`).
         pair_cross_blur_s: likewise per 2-frame check of a known disk PSF (a cross-blur search
             of the DFD pair, one family: about a fifth of a 3-frame search; :mod:`.charges`).
+        region_fit_s: likewise per region fit of a lit pair (:class:`~tdfd.autofocus.assist.AssistedDFDController`,
+            step 3; measured when a light is given).
         true_camera: the simulated optics when they differ from ``camera`` (a
             :class:`~tdfd.camera_file.CameraFile`: its camera, ECVFL power offset and focus
             breathing, as in :mod:`tdfd.capture.sim`). ``camera`` is then what the
@@ -124,7 +126,8 @@ class SimBench:
                  contrast: dict | None = None, texture_families: Sequence[str] | None = None,
                  light: Any | None = None, light_limits: LightLimits = DEFAULT_LIMITS,
                  evidence_s: float | None = None, true_camera: CameraFile | None = None,
-                 cross_blur_s: float | None = None, pair_cross_blur_s: float | None = None) -> None:
+                 cross_blur_s: float | None = None, pair_cross_blur_s: float | None = None,
+                 region_fit_s: float | None = None) -> None:
         if camera is None:
             camera = estimator.camera if estimator is not None else Camera.preset("reference")
         self.camera, self.estimator = camera, estimator
@@ -152,6 +155,7 @@ class SimBench:
         self.evidence_charge_s: float | None = evidence_s
         self.cross_blur_charge_s: float | None = cross_blur_s
         self.pair_cross_blur_charge_s: float | None = pair_cross_blur_s
+        self.region_fit_charge_s: float | None = region_fit_s
 
     def calibrate_evidence(self, repeats: int = 5) -> float:
         """Median wall time (s) of one relative-blur measurement on the ROI (:func:`~.charges.evidence_wall_s`)."""
@@ -175,6 +179,9 @@ class SimBench:
             log.info("evidence charged per relative-blur measurement: %.1f ms", self.evidence_charge_s * 1e3)
         if self.cross_blur_charge_s is None:
             self.cross_blur_charge_s = self.calibrate_cross_blur() if self.compute_s != 0 else 0.0
+        if self.region_fit_charge_s is None:
+            self.region_fit_charge_s = (region_fit_wall_s(self.camera, self.roi, self.readout_hw)
+                                        if self.compute_s != 0 and self.light is not None else 0.0)
         if self.pair_cross_blur_charge_s is None:
             self.pair_cross_blur_charge_s = (pair_cross_blur_wall_s(self.camera, self.roi, self.readout_hw)
                                              if self.compute_s != 0 else 0.0)
@@ -216,6 +223,7 @@ class SimBench:
             kwargs.update(self.controller_kwargs)
             kwargs.update(overrides)
             if kwargs.get("illumination") is not None:
+                kwargs.setdefault("region_fit", estimator_breathing(self.estimator) == 0.0)  # it does not register
                 return AssistedDFDController(self.camera, **kwargs)
             kwargs.pop("illumination", None)
             return DFDController(self.camera, **kwargs)
@@ -272,6 +280,7 @@ class SimBench:
         rec.scene = scene.name
         if isinstance(ctrl, AssistedDFDController):
             rec.extra.update(ctrl.lit_summary())
+            rec.time_ms += ctrl.region_fits * float(self.region_fit_charge_s or 0.0) * 1e3  # as the evidence is charged
             rec.extra["light_on_ms"] = (self.light_guard.total_on_s - on_before) * 1e3 if self.light_guard else 0.0
         return rec
 

@@ -18,7 +18,7 @@ from ..cross_blur import cross_blur_focus
 from ..relative_blur import relative_blur_px2, relative_blur_search_px2
 from ..roi import Roi, roi_crop_box
 
-__all__ = ["median_wall_s", "calibration_texture", "evidence_wall_s", "cross_blur_wall_s", "pair_cross_blur_wall_s",
+__all__ = ["median_wall_s", "calibration_texture", "evidence_wall_s", "region_fit_wall_s", "cross_blur_wall_s", "pair_cross_blur_wall_s",
            "estimator_wall_s"]
 
 
@@ -40,6 +40,20 @@ def calibration_texture(readout_hw: tuple[int, int]) -> np.ndarray:
 
     rng = np.random.default_rng(54321)
     return cv2.GaussianBlur(rng.uniform(0.2, 0.8, readout_hw).astype(np.float32), (0, 0), 1.0)
+
+
+def region_fit_wall_s(camera: Camera, roi: Roi, readout_hw: tuple[int, int], repeats: int = 5) -> float:
+    """One region fit over the ROI's central square (the assisted controller's step 3,
+    :func:`tdfd.dfd.region_fit.fit_region`; its estimator built before the timing, as the
+    controller reuses it)."""
+    import cv2
+
+    from ...dfd.region_fit import fit_region  # torch: loaded only for a bench with a light (the CLI imports this torch-free)
+
+    a = calibration_texture(readout_hw)
+    b = cv2.GaussianBlur(a, (0, 0), 2.0)
+    ra, rb = roi.crop(a), roi.crop(b)
+    return median_wall_s(lambda: fit_region(ra, rb, camera), repeats)
 
 
 def evidence_wall_s(camera: Camera, roi: Roi, readout_hw: tuple[int, int], repeats: int = 5) -> float:

@@ -1,0 +1,126 @@
+r"""One region's analytic fit: its full uncertainty, and its fusion with a tile estimate (torch-free).
+
+A sparse pattern (the assist light's two bars on a dark, texture-less target) gives a cue
+only along its edges: a handful of 64-px tiles each see a piece of it, while one Fourier
+ratio over a region holding the whole pattern (paper sec. 4: "one region covering the
+pattern") pools every edge into one fit. Where the lens's blur is Gaussian (the paper's
+eq. 7) that fit is the better estimate; through a disk (pillbox) lens it is biased by its
+model, by about half the target's distance in dioptres from the distance the pair blurs
+equally (measured: 0.52-0.57 x ``|q - q_eq|`` at 35-70 cm on the paper's pattern,
+``benchmarks.paper_experiment --optics pillbox``), where the refinement CNN, told the family,
+is not. Neither is always better, so the two are weighed by their uncertainties:
+
+.. math::
+
+    \sigma_R^2 = (e_{rel} q)^2 + (2 u_\mu (q - q_{eq}))^2 + (s_{shape} (q - q_{eq}))^2
+
+with ``e_rel`` the fit's own predicted relative error (:class:`~tdfd.dfd.FourierRatioDFD`),
+``u_mu`` the relative uncertainty of ``mu`` (a pair's estimate moves by ``2 u_mu (q - q_eq)``
+dpt when ``mu`` is off by ``u_mu``: :mod:`tdfd.dfd.calibrate`, *Conditioning*), and
+``s_shape`` the PSF family's model term (:data:`SHAPE_SIGMA`: 0 for a Gaussian lens). The fused
+inverse depth is the inverse-variance mean (:func:`fuse_inverse_depths`). All in inverse
+depth ``q = 1/d`` (dpt), where blur is linear (paper eq. 4). The fit itself (torch) is
+:func:`tdfd.dfd.region_fit.fit_region`; this module needs numpy only (the autofocus loop and
+the device runtime import it without torch).
+
+Example:
+    >>> q, s, chi = fuse_inverse_depths(2.0, 0.01, 2.1, 0.03)
+    >>> round(q, 3), round(s, 4), round(chi, 2)
+    (2.01, 0.0095, 3.16)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .camera import Camera
+from .errors import InputError
+
+__all__ = ["SHAPE_SIGMA", "DEFAULT_MU_UNCERTAINTY", "RegionFit", "region_sigma_dpt", "fuse_inverse_depths"]
+
+#: PSF-family model term ``s_shape`` of a Gaussian region fit (module docs): none for a
+#: Gaussian lens; for a disk (pillbox) lens or an unmeasured one (``None``) the measured bias
+#: of the Gaussian fit through a disk, 0.52-0.57 x ``|q - q_eq|``, rounded up.
+SHAPE_SIGMA = {"gaussian": 0.0, "pillbox": 0.6, None: 0.6}
+#: relative uncertainty of ``mu`` assumed when nothing better is known (a datasheet ``mu``).
+DEFAULT_MU_UNCERTAINTY = 0.02
+
+
+def region_sigma_dpt(inverse_depth: float, rel_error: float, camera: Camera, psf_family: str | None = None,
+                     mu_uncertainty: float = DEFAULT_MU_UNCERTAINTY) -> float:
+    """Standard uncertainty (dpt) of a Gaussian region fit's inverse depth (module docs).
+
+    Args:
+        inverse_depth: the fit's ``q`` (1/m).
+        rel_error: its predicted relative error (statistical).
+        camera: the camera (its equal-blur inverse depth, :attr:`~tdfd.camera.Camera.equal_blur_inverse_depth`).
+        psf_family: ``"gaussian"``, ``"pillbox"`` or ``None`` (unknown): :data:`SHAPE_SIGMA`.
+        mu_uncertainty: relative uncertainty of the ``mu`` the fit used.
+
+    Example:
+        >>> from tdfd import Camera
+        >>> cam = Camera.preset("reference")                   # equal blur at 1/2.2 m
+        >>> round(region_sigma_dpt(2.2, 0.001, cam, "pillbox"), 4)   # at q_eq only the statistics count
+        0.0022
+        >>> round(region_sigma_dpt(1.2, 0.0, cam, "pillbox", mu_uncertainty=0.0), 2)
+        0.6
+    """
+    if psf_family not in SHAPE_SIGMA:
+        raise InputError(f"psf_family must be one of {list(SHAPE_SIGMA)}, got {psf_family!r}")
+    for name, v in (("inverse_depth", inverse_depth), ("rel_error", rel_error), ("mu_uncertainty", mu_uncertainty)):
+        if not (math.isfinite(v) and v >= 0):
+            raise InputError(f"{name} must be finite and >= 0, got {v}")
+    q_eq = camera.equal_blur_inverse_depth
+    off = abs(inverse_depth - q_eq) if q_eq is not None else inverse_depth
+    return math.sqrt((rel_error * inverse_depth) ** 2 + (2.0 * mu_uncertainty * off) ** 2
+                     + (SHAPE_SIGMA[psf_family] * off) ** 2)
+
+
+def fuse_inverse_depths(q_a: float, sigma_a: float, q_b: float, sigma_b: float) -> tuple[float, float, float]:
+    """Inverse-variance mean of two independent inverse-depth estimates.
+
+    An estimate with an infinite uncertainty carries no weight (both infinite: an error).
+
+    Returns:
+        ``(q, sigma, discrepancy)``: the fused inverse depth and its standard uncertainty
+        (dpt), and the two estimates apart in their combined standard uncertainties.
+
+    Raises:
+        InputError: a NaN, a non-positive or NaN uncertainty, or two infinite ones.
+    """
+    for name, v in (("q_a", q_a), ("q_b", q_b), ("sigma_a", sigma_a), ("sigma_b", sigma_b)):
+        if math.isnan(v):
+            raise InputError(f"{name} is NaN")
+    if not (sigma_a > 0 and sigma_b > 0):
+        raise InputError(f"uncertainties must be > 0, got {sigma_a} and {sigma_b}")
+    if math.isinf(sigma_a) and math.isinf(sigma_b):
+        raise InputError("both estimates have an infinite uncertainty: nothing to fuse")
+    if math.isinf(sigma_a):
+        return q_b, sigma_b, 0.0
+    if math.isinf(sigma_b):
+        return q_a, sigma_a, 0.0
+    if not (math.isfinite(q_a) and math.isfinite(q_b)):
+        raise InputError(f"estimates with finite uncertainties must be finite, got {q_a} and {q_b}")
+    wa, wb = 1.0 / sigma_a**2, 1.0 / sigma_b**2
+    q = (wa * q_a + wb * q_b) / (wa + wb)
+    return q, 1.0 / math.sqrt(wa + wb), abs(q_a - q_b) / math.hypot(sigma_a, sigma_b)
+
+
+@dataclass(frozen=True)
+class RegionFit:
+    """One Gaussian Fourier-ratio fit over a region.
+
+    Attributes:
+        inverse_depth: ``q`` (1/m), clamped to the estimator's extended range.
+        sigma_dpt: its standard uncertainty (:func:`region_sigma_dpt`).
+        rel_error: the fit's own predicted relative error.
+        confidence: the estimator's confidence in [0, 1].
+        size_px: the side of the square region fitted.
+    """
+
+    inverse_depth: float
+    sigma_dpt: float
+    rel_error: float
+    confidence: float
+    size_px: int
