@@ -35,6 +35,10 @@ class DepthModel:
         camera: the model's :class:`tdfd.Camera`.
         run: ``(image_f1, image_f2)`` float32 ``(N, 1, H, W)`` tensors to ``(depth, confidence,
             depth_analytic)``, each ``(N, 1, h, w)`` float32 tensors.
+        run_told: the same, told each sample's PSF family: ``(image_f1, image_f2, params)`` with
+            the samples' ``data_synth`` parameter dicts (:func:`tdfd.model.training_codes`, every
+            Gaussian or pillbox sample told); ``None`` for a model without the family input or an
+            ONNX file (whose family is one per session).
     """
 
     name: str
@@ -43,6 +47,7 @@ class DepthModel:
     confidence_scale: float
     camera: object
     run: Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+    run_told: Callable[[torch.Tensor, torch.Tensor, list], tuple[torch.Tensor, torch.Tensor, torch.Tensor]] | None = None
 
 
 def load_depth_model(path: str | Path, threads: int = 2) -> DepthModel:
@@ -77,8 +82,16 @@ def load_depth_model(path: str | Path, threads: int = 2) -> DepthModel:
         with torch.no_grad():
             return model(i1.float(), i2.float())
 
+    def run_told(i1: torch.Tensor, i2: torch.Tensor, params: list) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        from tdfd.model import training_codes
+
+        with torch.no_grad():
+            r = model.analyse(i1.float(), i2.float(), training_codes(params, 1.0))
+        return r.depth, r.confidence, r.depth_analytic
+
     return DepthModel(p.with_suffix("").name if p.suffix in (".safetensors", ".json") else p.name, model.tile,
-                      model.stride, model.confidence_scale, model.camera, run_torch)
+                      model.stride, model.confidence_scale, model.camera, run_torch,
+                      run_told if model.psf_family_input else None)
 
 
 def predicted_scale(confidence: torch.Tensor, confidence_scale: float) -> torch.Tensor:

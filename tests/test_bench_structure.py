@@ -198,3 +198,34 @@ def test_onnx_and_torch_runners_give_the_same_depth_and_scale():
     d_o, c_o, _ = onnx_model.run(i1.float(), i2.float())
     torch.testing.assert_close(d_o, d_t, rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(c_o, c_t, rtol=1e-3, atol=1e-4)
+
+
+def test_the_told_runner_tells_each_scene_its_family_and_the_summary_compares():
+    from benchmarks.bench_structure import summarise_structure
+    from benchmarks.depth_models import load_depth_model
+    from benchmarks.report import ROOT
+    from tdfd.model import family_code
+    from tdfd.optics import render_pair
+
+    model = load_depth_model(ROOT / "models" / "reference")
+    assert model.run_told is not None and load_depth_model(ROOT / "models" / "reference.onnx").run_told is None
+    net = DFDModel.load(ROOT / "models" / "reference").eval()
+    g = torch.Generator().manual_seed(6)
+    sharp = (0.4 + 0.2 * torch.rand(2, 1, 128, 128, generator=g, dtype=torch.float64)).clamp(0, 1)
+    i1, i2 = render_pair(REF, sharp, torch.full((2, 1, 128, 128), 0.6, dtype=torch.float64))
+    params = [{"psf_shape": "pillbox", "sample_seed": 1}, {"psf_shape": "beta", "sample_seed": 2}]
+    d, c, _ = model.run_told(i1.float(), i2.float(), params)
+    with torch.no_grad():
+        codes = torch.stack([family_code("pillbox"), family_code(None)])
+        want = net.analyse(i1.float(), i2.float(), codes)
+    torch.testing.assert_close(d, want.depth)
+    assert not torch.allclose(d[0], model.run(i1.float(), i2.float())[0][0])  # the pillbox scene was told
+    # the summary's told block: the Gaussian and pillbox scenes' tiles away from edges only
+    t = torch.full((6,), 0.5)
+    tiles = {"true": t, "refined": t * 1.04, "analytic": t, "confidence": torch.full((6,), 0.2),
+             "edge": torch.tensor([False] * 5 + [True]), "psf": torch.tensor([0, 1, 2, 0, 1, 0]),
+             "refined_told": t * torch.tensor([1.01, 1.01, 1.5, 1.01, 1.01, 1.5]),
+             "confidence_told": torch.tensor([0.6, 0.6, 0.9, 0.2, 0.2, 0.9])}
+    told = summarise_structure(tiles, (0.3, 1.0))["told"]
+    assert told["tiles"] == 4 and told["told"] == pytest.approx(0.01, rel=1e-4)
+    assert told["untold"] == pytest.approx(0.04, rel=1e-4) and told["share_told"] == 0.5
