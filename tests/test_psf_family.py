@@ -159,15 +159,34 @@ def test_the_pairs_gaussian_and_disk_fits_disagree_on_a_periodic_texture():
 
 def test_a_known_disk_checks_a_two_frame_declaration_with_its_own_fit():
     """A confident model agrees with the pair's misled Gaussian fit (2.02 dpt, 3.6 px of blur):
-    with the family unknown, focus is declared there on 2 frames, out of focus. Told the lens
-    is a disk, the pair's disk fit disagrees, a verification follows and the 3-frame estimate
-    is in focus."""
+    with the family unknown and no disk check (the default), focus is declared there on 2 frames,
+    out of focus. Unknown with the disk check (``pair_disk_check=True``), or told the lens is a disk, the pair's
+    disk fit disagrees, a verification follows and the 3-frame estimate is in focus."""
     wrong = 2.02
     res = drive(DFDController(CAM), _disk_plant(wrong))
     assert res.evidence == "uncertainty" and res.frames == 2 and _blur_px(CHECKERS_M, res.power_dpt) > 3
+    res = drive(DFDController(CAM, pair_disk_check=True), _disk_plant(wrong))  # unknown: the disk fits best
+    assert res.pair_agrees is False and res.pair_cross_blur_checks == 1
+    assert res.status == "focused" and res.frames == 3 and _blur_px(CHECKERS_M, res.power_dpt) < 0.5
     res = drive(DFDController(CAM, psf_family="pillbox"), _disk_plant(wrong))
     assert res.pair_agrees is False and res.pair_cross_blur_checks == 1 and res.cross_blur_measurements >= 1
     assert res.status == "focused" and res.frames == 3 and _blur_px(CHECKERS_M, res.power_dpt) < 0.5
+
+
+def test_with_the_family_unknown_a_gaussian_best_fit_leaves_the_relative_blur_verdict(monkeypatch):
+    """The disk check asks the pair's disk focus only when a disk fits the pair best: a pair a
+    Gaussian explains best (here: the disk 1.2x its cost, focused 0.4 dpt away) is declared on
+    2 frames as before; the same fit with the disk best sends it to a third frame."""
+    truth = CAM.in_focus_power_dpt(TRUE_DEPTH)
+    for shape, frames in (("gaussian", 2), ("pillbox", 3)):
+        focus = CrossBlurFocus(truth + 0.4 if shape == "pillbox" else truth, shape, False, 1.0,
+                               other_power_dpt=truth + 0.4 if shape == "gaussian" else truth, other_cost_ratio=1.2,
+                               contrast=5.0)
+        monkeypatch.setattr(declaration, "cross_blur_focus", lambda *a, focus=focus, **k: focus)
+        res = drive(DFDController(CAM, fallback=False, refine_steps=0, pair_disk_check=True),
+                    FakePlant(TRUE_DEPTH, scripted=(TRUE_DEPTH, 0.9)))
+        assert res.pair_cross_blur_checks >= 1 and res.frames >= frames, shape
+        assert (res.evidence == "uncertainty") == (shape == "gaussian"), shape
 
 
 def _ambiguous(truth: float, runner_up: float, ratio: float) -> CrossBlurFocus:

@@ -166,6 +166,14 @@ class DFDController(FocusDeclaration, ContrastFallback, StateMachine):
             a camera file's ``psf_family`` measured by ``tdfd calibrate``): the cross-blur
             searches fit that family only, and with a disk the DFD pair's check of a 2-frame
             declaration is its disk cross-blur focus. ``None`` (default): both are tried.
+        pair_disk_check: with the family unknown, a 2-frame declaration also asks the pair's own
+            cross-blur focus over both families: where a disk fits the pair best, the model's power
+            must agree with its focus (:meth:`_pair_clear_disk_agrees`). Off by default: on 5000
+            reliability targets (seeds 0-4, 10-19, 20-29) it cut the declarations of focus at 2 px or
+            more of blur from 6 to 2 but not their count at 1 px (10 to 9, within the trajectories'
+            noise), and its search on every 2-frame declaration raised the autofocus benchmark's
+            median bench time from 66.3 to 79.0 ms (target 70 ms). Calibrating the family is the
+            remedy that costs nothing per request (``psf_family``).
         psf_sigma_scale: that family's RMS blur per dioptre over the camera's (a camera file's
             ``psf_sigma_scale``; 1 without a family).
     """
@@ -181,7 +189,7 @@ class DFDController(FocusDeclaration, ContrastFallback, StateMachine):
                  agree_px: float = 0.5, combine_gate: float = 2.0, refine_z: float = 2.5,
                  refine_max_uncertainty_px: float = 1.0, contrast_min_peak: float = 1.1,
                  pair_fallback: bool = True, pair_min_texture_snr: float = 3.0, cross_blur: bool = True,
-                 cross_blur_family_ratio: float = 1.5, cross_blur_min_contrast: float = 0.1,
+                 cross_blur_family_ratio: float = 1.5, cross_blur_min_contrast: float = 0.1, pair_disk_check: bool = False,
                  psf_family: str | None = None, psf_sigma_scale: float = 1.0) -> None:
         super().__init__(settle_s, lens_retries, capture_retries, power_limits_dpt)
         self.grid = None if grid is None else (int(grid[0]), int(grid[1]))
@@ -198,6 +206,7 @@ class DFDController(FocusDeclaration, ContrastFallback, StateMachine):
         self.verify_tolerance_px, self.verify_z = float(verify_tolerance_px), float(verify_z)
         self.shape_range = (float(shape_range[0]), float(shape_range[1]))
         self.refine_steps, self.agree_px = int(refine_steps), float(agree_px)
+        self.pair_disk_check = bool(pair_disk_check)
         if not (combine_gate >= 0 and refine_z > 0 and refine_max_uncertainty_px >= 0 and contrast_min_peak >= 1):
             raise InputError("need combine_gate >= 0, refine_z > 0, refine_max_uncertainty_px >= 0, "
                              "contrast_min_peak >= 1")
