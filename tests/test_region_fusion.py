@@ -112,3 +112,23 @@ def test_bench_lit_pair_is_fused_with_the_region_and_focuses() -> None:
         near = bench.run_trial(0.45, "dfd", uniform=True, psf_family="gaussian")
         assert near.in_focus and near.extra["region_weight"] == 0.0
     assert not light.is_on
+
+
+def test_no_region_fit_behind_breathing_registration() -> None:
+    """The region fit does not register focus breathing: the bench turns it off for an estimator
+    that registers the pair, and keeps it for one that does not."""
+    from tdfd.autofocus.estimators import AnalyticEstimator, OnnxEstimator, estimator_breathing
+    from tdfd.autofocus.registered import BreathingRegistered
+
+    plain = AnalyticEstimator(REF)
+    registered = BreathingRegistered(plain, 0.004)
+    assert estimator_breathing(plain) == 0.0 and estimator_breathing(registered) == pytest.approx(0.004)
+    assert estimator_breathing(OnnxEstimator()) == 0.0  # the shipped model registers no breathing
+    for est, expected in ((plain, True), (registered, False)):
+        with SimBench(estimator=est, light=SimulatedLight(REF), controller={"illumination": "coherent"},
+                      compute_s=0.001, readout_hw=(192, 224)) as bench:
+            assert bench.make_controller("dfd").region_fit is expected
+    with pytest.raises(InputError, match="region_mu_uncertainty"):
+        from tdfd.autofocus.assist import AssistedDFDController
+
+        AssistedDFDController(REF, illumination="coherent", region_mu_uncertainty=1.5)
