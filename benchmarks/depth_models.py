@@ -73,7 +73,7 @@ def load_depth_model(path: str | Path, threads: int = 2) -> DepthModel:
 
         return DepthModel(p.name, rt.tile, rt.stride, float(b0), rt.camera, run_onnx)
 
-    from tdfd.model import DFDModel
+    from tdfd.model import DFDModel, training_codes
 
     torch.set_num_threads(threads)
     model = DFDModel.load(p).eval()
@@ -83,8 +83,6 @@ def load_depth_model(path: str | Path, threads: int = 2) -> DepthModel:
             return model(i1.float(), i2.float())
 
     def run_told(i1: torch.Tensor, i2: torch.Tensor, params: list) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        from tdfd.model import training_codes
-
         with torch.no_grad():
             r = model.analyse(i1.float(), i2.float(), training_codes(params, 1.0))
         return r.depth, r.confidence, r.depth_analytic

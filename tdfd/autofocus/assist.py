@@ -179,7 +179,6 @@ class AssistedDFDController(DFDController):
     Attributes:
         lit: the present cycle's :class:`LitPair` (``None`` if it ran unlit).
         lit_cycles: focus cycles that used the light.
-        region_fits: region fits made (step 3; the simulated bench charges their time).
     """
 
     def __init__(self, camera: Camera, *, illumination: str | None = None, subtract_ambient: bool = False,
@@ -214,7 +213,6 @@ class AssistedDFDController(DFDController):
         self.ambient_pedestal = float(ambient_pedestal)
         self.lit: LitPair | None = None
         self.lit_cycles = 0
-        self.region_fits = 0
         self._unlit_pair: tuple[Frame, Frame] | None = None
         self._retry_lit = False
         self._retry_reason = ""
@@ -357,7 +355,7 @@ class AssistedDFDController(DFDController):
                 log.info("no region fit: %s", exc)
                 return agg, pooled
             sigma = estimate_uncertainty(agg, obs.confidence, pooled, self.camera, self.confidence_scale).sigma_dpt
-            self.region_fits += 1
+            self.result.region_fits += 1
             fused, lit.region_weight = fuse_with_region(agg, sigma, region)
             lit.region = region
             log.info("region fit %.4f +- %.4f dpt, lit tiles %.4f +- %.4f dpt: fused %.4f dpt (region weight %.2f)",

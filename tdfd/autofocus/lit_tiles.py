@@ -210,10 +210,10 @@ def fuse_with_region(pooled: DepthAggregate, tiles_sigma_dpt: float, region: Reg
     s_t = tiles_sigma_dpt if math.isfinite(q_t) and q_t > 0 else math.inf
     if math.isnan(s_t) or s_t <= 0:
         raise InputError(f"tiles_sigma_dpt must be > 0, got {tiles_sigma_dpt}")
-    q, _, chi = fuse_inverse_depths(q_t if math.isfinite(q_t) else 0.0, s_t, region.inverse_depth, region.sigma_dpt)
+    q, sigma, chi = fuse_inverse_depths(q_t if math.isfinite(q_t) else 0.0, s_t, region.inverse_depth, region.sigma_dpt)
     if chi > max_discrepancy:
         return pooled, 0.0
-    w_r = 0.0 if math.isinf(region.sigma_dpt) else (1.0 if math.isinf(s_t) else s_t**2 / (s_t**2 + region.sigma_dpt**2))
+    w_r = (sigma / region.sigma_dpt) ** 2  # inverse-variance share: 0 for an infinite region sigma, 1 without tiles
     depth = 1.0 / q if q > 0 else math.inf
     return dataclasses.replace(pooled, depth_m=depth, inverse_depth=q), w_r
 

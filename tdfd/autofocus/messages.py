@@ -247,6 +247,8 @@ class AFResult:
             each on the bench's ROI; charged likewise).
         pair_cross_blur_checks: 2-frame cross-blur searches of the DFD pair, one PSF family (the
             check of a known disk PSF: about a fifth of a 3-frame search; charged likewise).
+        region_fits: one-region fits of a lit pair (the assist policy's step 3, 1.5-10 ms each;
+            charged likewise).
         refocus_count: DFD cycles run (continuous mode counts every re-estimate).
         history: ``(t_s, power_dpt, depth_m)`` of every focus decision (continuous mode).
     """
@@ -274,6 +276,7 @@ class AFResult:
     blur_measurements: int = 0
     cross_blur_measurements: int = 0
     pair_cross_blur_checks: int = 0
+    region_fits: int = 0
     refocus_count: int = 0
     history: list[tuple[float, float, float | None]] = field(default_factory=list)
 

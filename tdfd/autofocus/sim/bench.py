@@ -280,7 +280,6 @@ class SimBench:
         rec.scene = scene.name
         if isinstance(ctrl, AssistedDFDController):
             rec.extra.update(ctrl.lit_summary())
-            rec.time_ms += ctrl.region_fits * float(self.region_fit_charge_s or 0.0) * 1e3  # as the evidence is charged
             rec.extra["light_on_ms"] = (self.light_guard.total_on_s - on_before) * 1e3 if self.light_guard else 0.0
         return rec
 
@@ -308,7 +307,8 @@ class SimBench:
             lens_commands=result.lens_commands,
             time_ms=(t_end - t0 + result.blur_measurements * float(self.evidence_charge_s or 0.0)
                      + result.cross_blur_measurements * float(self.cross_blur_charge_s or 0.0)
-                     + result.pair_cross_blur_checks * float(self.pair_cross_blur_charge_s or 0.0)) * 1e3,
+                     + result.pair_cross_blur_checks * float(self.pair_cross_blur_charge_s or 0.0)
+                     + result.region_fits * float(self.region_fit_charge_s or 0.0)) * 1e3,
             method=result.method,
             requested=requested, status=result.status, reason=reason, confidence=result.confidence,
             compute_ms=compute, verified=result.verified, trial=trial, evidence=result.evidence,
