@@ -17,9 +17,18 @@ is not. Neither is always better, so the two are weighed by their uncertainties:
 with ``e_rel`` the fit's own predicted relative error (:class:`~tdfd.dfd.FourierRatioDFD`),
 ``u_mu`` the relative uncertainty of ``mu`` (a pair's estimate moves by ``2 u_mu (q - q_eq)``
 dpt when ``mu`` is off by ``u_mu``: :mod:`tdfd.dfd.calibrate`, *Conditioning*), and
-``s_shape`` the PSF family's model term (:data:`SHAPE_SIGMA`: 0 for a Gaussian lens). The fused
-inverse depth is the inverse-variance mean (:func:`fuse_inverse_depths`). All in inverse
-depth ``q = 1/d`` (dpt), where blur is linear (paper eq. 4). The fit itself (torch) is
+``s_shape`` the PSF family's model term (:data:`SHAPE_SIGMA`: 0 for a Gaussian lens).
+
+The two estimates are not independent: the tiles see a subset of the region's pixels, so
+their noise is part of the region's. For an efficient estimator ``R`` and any unbiased ``T``
+of the same quantity ``cov(R, T) = var(R)`` (Rao, *Linear Statistical Inference*, 5a.2), so
+the region's statistical term ``(e_rel q)^2`` is the covariance of the two (capped at the
+tiles' own variance), while its ``mu`` and shape terms, and the model's own error, are
+independent. The fused inverse depth is the best linear unbiased combination of two
+correlated estimates (:func:`fuse_inverse_depths` with ``covariance``): a tile estimate
+noisier than the region's statistics adds information only where the region has a
+systematic term, and none on a Gaussian lens with ``mu`` known. All in inverse depth
+``q = 1/d`` (dpt), where blur is linear (paper eq. 4). The fit itself (torch) is
 :func:`tdfd.dfd.region_fit.fit_region`; this module needs numpy only (the autofocus loop and
 the device runtime import it without torch).
 
@@ -27,6 +36,8 @@ Example:
     >>> q, s, chi = fuse_inverse_depths(2.0, 0.01, 2.1, 0.03)
     >>> round(q, 3), round(s, 4), round(chi, 2)
     (2.01, 0.0095, 3.16)
+    >>> fuse_inverse_depths(2.0, 0.01, 2.1, 0.03, covariance=0.01**2)[:2]   # b's noise holds all of a's
+    (2.0, 0.01)
 """
 
 from __future__ import annotations
@@ -37,7 +48,7 @@ from dataclasses import dataclass
 from .camera import Camera
 from .errors import InputError
 
-__all__ = ["SHAPE_SIGMA", "DEFAULT_MU_UNCERTAINTY", "RegionFit", "region_sigma_dpt", "fuse_inverse_depths"]
+__all__ = ["SHAPE_SIGMA", "DEFAULT_MU_UNCERTAINTY", "RegionFit", "region_sigma_dpt", "fusion_weight", "fuse_inverse_depths"]
 
 #: PSF-family model term ``s_shape`` of a Gaussian region fit (module docs): none for a
 #: Gaussian lens; for a disk (pillbox) lens or an unmeasured one (``None``) the measured bias
@@ -77,19 +88,51 @@ def region_sigma_dpt(inverse_depth: float, rel_error: float, camera: Camera, psf
                      + (SHAPE_SIGMA[psf_family] * off) ** 2)
 
 
-def fuse_inverse_depths(q_a: float, sigma_a: float, q_b: float, sigma_b: float) -> tuple[float, float, float]:
-    """Inverse-variance mean of two independent inverse-depth estimates.
+def fusion_weight(sigma_a: float, sigma_b: float, covariance: float = 0.0) -> float:
+    """Weight of estimate ``a`` in the best linear unbiased mean of two (:func:`fuse_inverse_depths`):
+    ``(sigma_b^2 - c) / (sigma_a^2 + sigma_b^2 - 2c)``; 0 for an infinite ``sigma_a``, 1 for an
+    infinite ``sigma_b``, 1/2 for two fully correlated estimates of equal uncertainty.
 
+    Example:
+        >>> round(fusion_weight(0.03, 0.01), 2), fusion_weight(0.03, 0.01, covariance=0.01**2)
+        (0.1, 0.0)
+    """
+    if math.isinf(sigma_a) or math.isinf(sigma_b):
+        return 0.0 if math.isinf(sigma_a) else 1.0
+    va, vb = sigma_a**2, sigma_b**2
+    v_diff = va + vb - 2.0 * covariance
+    if v_diff <= 1e-12 * (va + vb):
+        return 0.5
+    return (vb - covariance) / v_diff
+
+
+def fuse_inverse_depths(q_a: float, sigma_a: float, q_b: float, sigma_b: float,
+                        covariance: float = 0.0) -> tuple[float, float, float]:
+    """Best linear unbiased mean of two inverse-depth estimates, independent or correlated.
+
+    With ``c`` the covariance of their errors, the weight of ``a`` is
+    ``w = (sigma_b^2 - c) / (sigma_a^2 + sigma_b^2 - 2c)``, the fused variance
+    ``(sigma_a^2 sigma_b^2 - c^2) / (sigma_a^2 + sigma_b^2 - 2c)`` and the two estimates differ
+    by ``sqrt(sigma_a^2 + sigma_b^2 - 2c)`` in standard deviation (Aitken's generalised least
+    squares for two measurements). ``c = 0``: the inverse-variance mean; ``c = sigma_a^2``
+    (``a``'s error a part of ``b``'s, as a subset's noise is of the whole set's): ``a`` alone.
     An estimate with an infinite uncertainty carries no weight (both infinite: an error).
+
+    Args:
+        q_a, sigma_a, q_b, sigma_b: the estimates (1/m) and their standard uncertainties (dpt).
+        covariance: of their errors (dpt^2), ``|c| <= sigma_a sigma_b`` (Cauchy-Schwarz);
+            ignored where an uncertainty is infinite.
 
     Returns:
         ``(q, sigma, discrepancy)``: the fused inverse depth and its standard uncertainty
-        (dpt), and the two estimates apart in their combined standard uncertainties.
+        (dpt), and the two estimates apart in standard deviations of their difference
+        (``inf`` when that is 0 and they differ).
 
     Raises:
-        InputError: a NaN, a non-positive or NaN uncertainty, or two infinite ones.
+        InputError: a NaN, a non-positive or NaN uncertainty, two infinite ones, or a
+            covariance that is NaN or beyond ``sigma_a sigma_b``.
     """
-    for name, v in (("q_a", q_a), ("q_b", q_b), ("sigma_a", sigma_a), ("sigma_b", sigma_b)):
+    for name, v in (("q_a", q_a), ("q_b", q_b), ("sigma_a", sigma_a), ("sigma_b", sigma_b), ("covariance", covariance)):
         if math.isnan(v):
             raise InputError(f"{name} is NaN")
     if not (sigma_a > 0 and sigma_b > 0):
@@ -102,9 +145,18 @@ def fuse_inverse_depths(q_a: float, sigma_a: float, q_b: float, sigma_b: float) 
         return q_a, sigma_a, 0.0
     if not (math.isfinite(q_a) and math.isfinite(q_b)):
         raise InputError(f"estimates with finite uncertainties must be finite, got {q_a} and {q_b}")
-    wa, wb = 1.0 / sigma_a**2, 1.0 / sigma_b**2
-    q = (wa * q_a + wb * q_b) / (wa + wb)
-    return q, 1.0 / math.sqrt(wa + wb), abs(q_a - q_b) / math.hypot(sigma_a, sigma_b)
+    va, vb = sigma_a**2, sigma_b**2
+    if not abs(covariance) <= sigma_a * sigma_b * (1 + 1e-12):
+        raise InputError(f"covariance {covariance} exceeds sigma_a * sigma_b = {sigma_a * sigma_b} (Cauchy-Schwarz)")
+    c = max(-sigma_a * sigma_b, min(covariance, sigma_a * sigma_b))
+    v_diff = va + vb - 2.0 * c
+    if v_diff <= 1e-12 * (va + vb):  # fully correlated with equal uncertainties: the same estimate twice
+        chi = 0.0 if q_a == q_b else math.inf
+        return 0.5 * (q_a + q_b), math.sqrt(max(c, 0.0)), chi
+    w_a = fusion_weight(sigma_a, sigma_b, c)
+    q = w_a * q_a + (1.0 - w_a) * q_b
+    var = max((va * vb - c * c) / v_diff, 0.0)
+    return q, math.sqrt(var), abs(q_a - q_b) / math.sqrt(v_diff)
 
 
 @dataclass(frozen=True)
@@ -114,7 +166,7 @@ class RegionFit:
     Attributes:
         inverse_depth: ``q`` (1/m), clamped to the estimator's extended range.
         sigma_dpt: its standard uncertainty (:func:`region_sigma_dpt`).
-        rel_error: the fit's own predicted relative error.
+        rel_error: the fit's own predicted relative error (statistical: :attr:`noise_sigma_dpt`).
         confidence: the estimator's confidence in [0, 1].
         size_px: the side of the square region fitted.
     """
@@ -124,3 +176,9 @@ class RegionFit:
     rel_error: float
     confidence: float
     size_px: int
+
+    @property
+    def noise_sigma_dpt(self) -> float:
+        """The statistical part of :attr:`sigma_dpt` (dpt), ``rel_error * inverse_depth``: the
+        noise of the region's pixels, which a subset of them (the lit tiles) shares."""
+        return self.rel_error * self.inverse_depth

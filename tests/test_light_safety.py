@@ -18,6 +18,7 @@ from tdfd.autofocus.sim import SimBench
 from tdfd.driver import EmulatorServer, Faults, OptotuneLens
 from tdfd.errors import TdfdError
 from tdfd.light import LightLimits, SerialLineLight, SimulatedLight, open_serial_line
+from tdfd.region_fusion import DEFAULT_MU_UNCERTAINTY
 
 CAM = Camera.preset("reference")
 HW = (192, 224)
@@ -239,7 +240,7 @@ class _LitCamera:
         pass
 
 
-def _hardware(analytic, fail=None, estimator=None, faults=None):
+def _hardware(analytic, fail=None, estimator=None, faults=None, **kw):
     port = open_serial_line("loop://", "rts")
     light = SerialLineLight(port, "rts", owns_port=True)
     srv = EmulatorServer(temperature_c=22.0).start()
@@ -261,7 +262,7 @@ def _hardware(analytic, fail=None, estimator=None, faults=None):
             # their own tests)
             res = run_hardware(None, 0, estimator or analytic, camera=cam, lens=lens, light=light,
                                temperature_limits_c=(15.0, 25.0), settle_s=0.02,
-                               light_limits=LightLimits(max_on_s=120.0, max_duty=1.0, duty_window_s=120.0))
+                               light_limits=LightLimits(max_on_s=120.0, max_duty=1.0, duty_window_s=120.0), **kw)
         finally:
             lens.close()
         return res, cam, port, light
@@ -274,6 +275,27 @@ def test_hardware_lit_focus_and_the_line_read_back(analytic):
     assert res.status == "focused" and res.frames <= 3 and cam.lit_reads == res.frames  # every frame lit
     assert port.cts is False and not light.is_on
     light.close()
+
+
+def test_hardware_region_fit_counts_the_calibrated_mu_uncertainty(analytic, monkeypatch):
+    """A calibrated camera file's mu uncertainty (tdfd autofocus --psf-family CAM.json) reaches the
+    assist light's controller; without one the controller keeps its default."""
+    import tdfd.autofocus.hardware as hw
+
+    seen = []
+
+    class Spy(hw.AssistedDFDController):
+        def __init__(self, camera, **kw):
+            super().__init__(camera, **kw)
+            seen.append(self.region_mu_uncertainty)
+
+    monkeypatch.setattr(hw, "AssistedDFDController", Spy)
+    res, cam, port, light = _hardware(analytic, region_mu_uncertainty=0.003)
+    assert res.status == "focused" and seen == [0.003] and port.cts is False
+    light.close()
+    res, cam, port, light = _hardware(analytic)
+    light.close()
+    assert seen == [0.003, DEFAULT_MU_UNCERTAINTY]
 
 
 def test_hardware_light_off_after_camera_failure_and_interrupt(analytic):

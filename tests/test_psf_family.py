@@ -17,7 +17,7 @@ from tdfd.autofocus.cross_blur import CrossBlurFocus, cross_blur_focus
 from tdfd.autofocus.dfd import DFDController
 from tdfd.autofocus.evidence import sigma_px_per_dpt
 from tdfd.autofocus.machine import drive
-from tdfd.autofocus.psf_family_option import resolve_psf_family
+from tdfd.autofocus.psf_family_option import calibrated_mu_uncertainty, resolve_psf_family
 from tdfd.autofocus.roi import Roi
 from tdfd.autofocus.sim.psf_calibration import measure_sim_psf_family
 from tdfd.autofocus.sim.scene import Scene
@@ -127,6 +127,36 @@ def test_the_psf_family_option_rejects_what_it_cannot_use(tmp_path):
     bad.write_text(json.dumps({**CAM.to_dict(), "psf_family": "pillbox", "psf_sigma_scale": 9.0}))
     with pytest.raises(CameraError, match="scale.json: psf_sigma_scale"):
         resolve_psf_family(str(bad))
+
+
+def test_the_camera_files_mu_uncertainty_reaches_the_hardware_loop(tmp_path, monkeypatch, capsys):
+    """--psf-family CAM.json also gives the region fit the calibration's mu uncertainty; a file
+    without one gives none, a bad value is one line naming the file, before any port opens."""
+    import tdfd.autofocus.cli as cli
+
+    cal = {**CAM.to_dict(), "psf_family": "gaussian", "calibration": {"mu_relative_uncertainty": 0.0022}}
+    (tmp_path / "cam.json").write_text(json.dumps(cal))
+    (tmp_path / "plain.json").write_text(json.dumps(CAM.to_dict()))
+    (tmp_path / "bad.json").write_text(json.dumps({**cal, "calibration": {"mu_relative_uncertainty": 1.5}}))
+    assert calibrated_mu_uncertainty(str(tmp_path / "cam.json")) == 0.0022
+    assert calibrated_mu_uncertainty(str(tmp_path / "plain.json")) is None
+    assert calibrated_mu_uncertainty("gaussian") is None and calibrated_mu_uncertainty("unknown") is None
+    with pytest.raises(CameraError, match="bad.json: calibration.mu_relative_uncertainty"):
+        calibrated_mu_uncertainty(str(tmp_path / "bad.json"))
+    seen = {}
+
+    def fake_run_hardware(port, camera, est, **kw):
+        seen.update(kw)
+        raise InputError("stop here")
+
+    monkeypatch.setattr(cli, "run_hardware", fake_run_hardware)
+    argv = ["autofocus", "--port", str(tmp_path / "no-port"), "--camera", "0", "--model", "analytic", "--psf-family"]
+    assert main(argv + [str(tmp_path / "cam.json")]) == 1 and "stop here" in capsys.readouterr().err
+    assert seen["region_mu_uncertainty"] == 0.0022 and seen["psf_family"] == "gaussian"
+    assert main(argv + [str(tmp_path / "plain.json")]) == 1 and seen["region_mu_uncertainty"] is None
+    seen.clear()
+    assert main(argv + [str(tmp_path / "bad.json")]) == 1 and seen == {}
+    assert "bad.json: calibration.mu_relative_uncertainty" in capsys.readouterr().err
 
 
 # checkers through a disk at 0.797 m (the reliability benchmark's tuning seed 10, trial 3): the

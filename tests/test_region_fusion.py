@@ -13,7 +13,7 @@ from tdfd.autofocus.aggregate import DepthAggregate
 from tdfd.autofocus.lit_tiles import fuse_with_region
 from tdfd.autofocus.sim import SimBench
 from tdfd.dfd.region_fit import fit_region
-from tdfd.region_fusion import SHAPE_SIGMA, RegionFit, fuse_inverse_depths, region_sigma_dpt
+from tdfd.region_fusion import SHAPE_SIGMA, RegionFit, fuse_inverse_depths, fusion_weight, region_sigma_dpt
 from tdfd.errors import InputError, ShapeError
 from tdfd.forward import Defocus, DFDForward
 from tdfd.illumination import CoherentIllumination, illuminate
@@ -35,6 +35,51 @@ def test_fusion_is_the_inverse_variance_mean() -> None:
         fuse_inverse_depths(2.0, math.inf, 2.1, math.inf)
     with pytest.raises(InputError, match="> 0"):
         fuse_inverse_depths(2.0, 0.0, 2.1, 0.1)
+
+
+def test_correlated_fusion_of_a_subset_and_its_whole_set() -> None:
+    """A subset's mean and the whole set's mean plus an independent systematic error: the
+    generalised least-squares weights (covariance = the whole set's noise variance) reach the
+    variance they state, below that of the independent inverse-variance mean, which states
+    too small a one; the subset gets no weight when the whole set has no systematic term."""
+    rng = np.random.default_rng(7)
+    n, m, trials, s_b = 400, 100, 20000, 0.02
+    noise = rng.normal(0.0, 1.0, (trials, n))
+    subset, whole = noise[:, :m].mean(1), noise.mean(1) + rng.normal(0.0, s_b, trials)
+    s_t, s_n = 1 / math.sqrt(m), 1 / math.sqrt(n)
+    s_r = math.hypot(s_n, s_b)
+    se = s_t * s_r / math.sqrt(trials)  # standard error of the sample covariance
+    assert np.cov(subset, whole)[0, 1] == pytest.approx(s_n**2, abs=4 * se)  # the subset's noise is the whole's
+    fused_corr = np.array([fuse_inverse_depths(a, s_t, b, s_r, covariance=s_n**2)[0] for a, b in zip(subset, whole)])
+    fused_ind = np.array([fuse_inverse_depths(a, s_t, b, s_r)[0] for a, b in zip(subset, whole)])
+    stated_corr = fuse_inverse_depths(0.0, s_t, 0.0, s_r, covariance=s_n**2)[1]
+    stated_ind = fuse_inverse_depths(0.0, s_t, 0.0, s_r)[1]
+    assert fused_corr.std() == pytest.approx(stated_corr, rel=0.03)
+    assert fused_ind.std() > 1.1 * stated_ind  # independence assumed: overconfident
+    assert fused_corr.std() < 0.985 * fused_ind.std()
+    # no systematic term: the whole set's mean is sufficient, the subset gets no weight
+    assert fusion_weight(s_t, s_n, covariance=s_n**2) == 0.0
+    q, s, chi = fuse_inverse_depths(2.3, s_t, 2.0, s_n, covariance=s_n**2)
+    assert (q, s) == (2.0, pytest.approx(s_n)) and chi == pytest.approx(0.3 / math.sqrt(s_t**2 - s_n**2))
+    assert fusion_weight(0.02, 0.02, covariance=0.02**2) == 0.5  # the same estimate twice
+    with pytest.raises(InputError, match="Cauchy-Schwarz"):
+        fuse_inverse_depths(2.0, 0.01, 2.1, 0.03, covariance=0.01)
+    with pytest.raises(InputError, match="covariance is NaN"):
+        fuse_inverse_depths(2.0, 0.01, 2.1, 0.03, covariance=math.nan)
+
+
+def test_lit_tiles_add_nothing_to_a_region_without_systematic_error() -> None:
+    """The region's statistics are the tiles' covariance: a region fit whose uncertainty is its
+    noise alone (a Gaussian lens, mu exact) carries the whole weight; a disk lens's shape term
+    gives the tiles theirs back."""
+    tiles = DepthAggregate(depth_m=1 / 1.45, inverse_depth=1.45, confidence=0.2, spread_dpt=0.02, tiles=20, inliers=12)
+    exact = RegionFit(inverse_depth=1.43, sigma_dpt=0.005 * 1.43, rel_error=0.005, confidence=0.9, size_px=512)
+    fused, w = fuse_with_region(tiles, 0.04, exact)
+    assert w == 1.0 and fused.inverse_depth == 1.43
+    disk = RegionFit(inverse_depth=1.43, sigma_dpt=region_sigma_dpt(1.43, 0.005, REF, "pillbox", 0.0), rel_error=0.005,
+                     confidence=0.9, size_px=512)
+    fused, w = fuse_with_region(tiles, 0.04, disk)
+    assert w < 0.01 and fused.inverse_depth == pytest.approx(1.45, abs=2e-4)
 
 
 def test_region_uncertainty_terms() -> None:

@@ -20,8 +20,9 @@ One focus request with a light allowed, by default (``ambient_frame=False``):
    the ROI's outer ring of tiles (the pattern lies inside the ROI: a pattern, or a texture,
    that reaches the ROI's edge would be cut by the region), one Fourier-ratio fit over the
    ROI's central square of the lit pair (:func:`tdfd.dfd.region_fit.fit_region`, the
-   paper's one region around the pattern) is fused with the pooled tiles by inverse
-   variance (:func:`~tdfd.autofocus.lit_tiles.fuse_with_region`); its uncertainty counts
+   paper's one region around the pattern) is fused with the pooled tiles as two correlated
+   estimates (:func:`~tdfd.autofocus.lit_tiles.fuse_with_region`: the tiles' pixels are the
+   region's, so the region's statistical error is their covariance); its uncertainty counts
    its statistics, ``mu``'s uncertainty and, for a lens not known to be Gaussian
    (``psf_family``), the Gaussian model's bias through a disk, so it carries the estimate
    near the distance the pair blurs equally and on a Gaussian lens, the tiles elsewhere.

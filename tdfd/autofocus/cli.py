@@ -28,7 +28,7 @@ from ..camera import Camera
 from ..driver import Faults
 from ..errors import InputError
 from .estimators import default_model_path, load_estimator
-from .psf_family_option import add_psf_family_argument, resolve_psf_family, tell_estimator
+from .psf_family_option import add_psf_family_argument, calibrated_mu_uncertainty, resolve_psf_family, tell_estimator
 from .hardware import run_hardware
 from .light_cli import (
     add_light_arguments,
@@ -225,6 +225,9 @@ def _run_sim(args: argparse.Namespace) -> int:
     tell_estimator(est, controller["psf_family"])
     light, light_controller = sim_light(args, optics)
     controller.update(light_controller)
+    mu_uncertainty = calibrated_mu_uncertainty(args.psf_family)
+    if mu_uncertainty is not None and controller.get("illumination") is not None:  # the lit pair's region fit
+        controller["region_mu_uncertainty"] = mu_uncertainty
     bench = SimBench(light=light, light_limits=light_limits(args), estimator=est, readout_hw=readout, roi=roi, timing=timing,
                      noise=SensorNoise(enabled=not args.no_noise), settle_s=args.settle_ms / 1e3,
                      compute_s=args.compute, seed=args.seed, psf=_psf(args.psf), scene=scene,
@@ -328,6 +331,7 @@ def _run_hardware(args: argparse.Namespace) -> int:
         raise InputError("--method both is for the simulated bench")
     est = _estimator(args, method == "dfd")
     family, scale = resolve_psf_family(args.psf_family)  # before the light and the lens: a bad value touches neither
+    mu_uncertainty = calibrated_mu_uncertainty(args.psf_family)
     tell_estimator(est, family)
     light = open_named_light(args)  # before the lens: a missing light port leaves the lens untouched
     on_term = sigterm_as_interrupt() if light is not None else contextlib.nullcontext()  # kill -> Ctrl-C's exit path
@@ -340,7 +344,7 @@ def _run_hardware(args: argparse.Namespace) -> int:
                                min_confidence=args.min_confidence, max_uncertainty_px=args.max_uncertainty,
                                contrast={"strategy": args.contrast_strategy, "step_dpt": args.contrast_step},
                                light=light, illumination=args.illumination, light_limits=light_limits(args),
-                               psf_family=family, psf_sigma_scale=scale)
+                               psf_family=family, psf_sigma_scale=scale, region_mu_uncertainty=mu_uncertainty)
     finally:
         if light is not None:
             light.close()

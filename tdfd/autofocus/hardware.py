@@ -238,7 +238,8 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
                  contrast: dict | None = None, camera: Any | None = None, lens: Any | None = None,
                  min_confidence: float | None = None, max_uncertainty_px: float = 0.25, light: Any | None = None,
                  illumination: str | None = None, light_limits: LightLimits = DEFAULT_LIMITS,
-                 psf_family: str | None = None, psf_sigma_scale: float = 1.0) -> AFResult:
+                 psf_family: str | None = None, psf_sigma_scale: float = 1.0,
+                 region_mu_uncertainty: float | None = None) -> AFResult:
     """Autofocus once (or continuously) on real hardware.
 
     Args:
@@ -266,6 +267,9 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
         light_limits: the light's on-time and duty caps.
         psf_family, psf_sigma_scale: the lens's PSF family and its blur scale (a calibrated camera
             file's), see :class:`~tdfd.autofocus.dfd.DFDController`; ``None``: unknown.
+        region_mu_uncertainty: the relative uncertainty of ``mu`` the assist light's region fit
+            counts (a calibrated camera file's ``calibration.mu_relative_uncertainty``, see
+            :class:`~tdfd.autofocus.assist.AssistedDFDController`); ``None``: its default.
 
     Returns:
         The :class:`~tdfd.autofocus.messages.AFResult`; lens and camera faults end up in it
@@ -312,8 +316,9 @@ def run_hardware(port: str | None, camera_source: str | int, estimator: Estimato
                               psf_sigma_scale=psf_sigma_scale,
                               min_confidence=suggested_min_confidence(estimator) if min_confidence is None
                               else min_confidence)
+            region = {} if region_mu_uncertainty is None else {"region_mu_uncertainty": region_mu_uncertainty}
             ctrl = (AssistedDFDController(optics, illumination=pattern, region_fit=estimator_breathing(estimator) == 0.0,
-                                          **dfd_kwargs) if pattern is not None
+                                          **region, **dfd_kwargs) if pattern is not None
                     else DFDController(optics, **dfd_kwargs))
         else:
             if dry_run:

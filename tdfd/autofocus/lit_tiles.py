@@ -32,7 +32,7 @@ import math
 
 import numpy as np
 
-from ..region_fusion import RegionFit, fuse_inverse_depths
+from ..region_fusion import RegionFit, fuse_inverse_depths, fusion_weight
 from ..errors import InputError, ShapeError
 from .aggregate import DepthAggregate, aggregate_depth
 
@@ -181,19 +181,23 @@ def fuse_with_region(pooled: DepthAggregate, tiles_sigma_dpt: float, region: Reg
     """The lit ROI's depth from its pooled tiles and one region fit together (:mod:`tdfd.region_fusion`).
 
     The pooled tiles' inverse depth (uncertainty ``tiles_sigma_dpt``, e.g.
-    :func:`tdfd.autofocus.evidence.estimate_uncertainty`) and the region's are averaged by
-    inverse variance; the aggregate keeps the tiles' confidence, spread and counts (what the
-    controller's trust rules read), only its depth changes. When the two disagree by more
-    than ``max_discrepancy`` combined standard uncertainties the region is not used: one fit
-    over an ROI that holds more than one depth (an occluder, a slanted or textured background
-    under the pattern) mixes them, where the tiles' robust pooling does not.
+    :func:`tdfd.autofocus.evidence.estimate_uncertainty`) and the region's are combined as
+    two correlated estimates: the tiles' pixels are the region's, so the region's statistical
+    error (:attr:`~tdfd.region_fusion.RegionFit.noise_sigma_dpt`, capped at the tiles' own) is
+    their covariance (:mod:`tdfd.region_fusion`); tiles noisier than that add only where the
+    region has a systematic term (``mu``, a disk lens). The aggregate keeps the tiles'
+    confidence, spread and counts (what the controller's trust rules read), only its depth
+    changes. When the two disagree by more than ``max_discrepancy`` standard deviations of
+    their difference the region is not used: one fit over an ROI that holds more than one
+    depth (an occluder, a slanted or textured background under the pattern) mixes them, where
+    the tiles' robust pooling does not.
 
     Args:
         pooled: :func:`pool_lit_tiles`'s aggregate (a NaN depth: no lit tile, the region alone).
         tiles_sigma_dpt: its standard uncertainty (dpt; ``inf``: no weight).
         region: :func:`tdfd.dfd.region_fit.fit_region` over the ROI.
-        max_discrepancy: the disagreement (in combined standard uncertainties) beyond which the
-            region is left out.
+        max_discrepancy: the disagreement (in standard deviations of the difference) beyond
+            which the region is left out.
 
     Returns:
         ``(aggregate, region weight)``: the fused aggregate and the region's share of the weight in [0, 1].
@@ -202,7 +206,7 @@ def fuse_with_region(pooled: DepthAggregate, tiles_sigma_dpt: float, region: Reg
         >>> pooled = DepthAggregate(0.5, 2.0, 0.3, 0.01, 9, 9)
         >>> fused, w = fuse_with_region(pooled, 0.03, RegionFit(2.04, 0.01, 0.004, 0.9, 512))
         >>> round(fused.inverse_depth, 3), round(w, 2), fused.confidence
-        (2.036, 0.9, 0.3)
+        (2.038, 0.96, 0.3)
         >>> fuse_with_region(pooled, 0.03, RegionFit(2.5, 0.01, 0.004, 0.9, 512))[1]   # 16 sigmas apart: left out
         0.0
     """
@@ -210,10 +214,12 @@ def fuse_with_region(pooled: DepthAggregate, tiles_sigma_dpt: float, region: Reg
     s_t = tiles_sigma_dpt if math.isfinite(q_t) and q_t > 0 else math.inf
     if math.isnan(s_t) or s_t <= 0:
         raise InputError(f"tiles_sigma_dpt must be > 0, got {tiles_sigma_dpt}")
-    q, sigma, chi = fuse_inverse_depths(q_t if math.isfinite(q_t) else 0.0, s_t, region.inverse_depth, region.sigma_dpt)
+    q_t = q_t if math.isfinite(q_t) else 0.0
+    shared = min(region.noise_sigma_dpt, s_t, region.sigma_dpt) ** 2  # the tiles' pixels are the region's
+    q, _, chi = fuse_inverse_depths(q_t, s_t, region.inverse_depth, region.sigma_dpt, covariance=shared)
     if chi > max_discrepancy:
         return pooled, 0.0
-    w_r = (sigma / region.sigma_dpt) ** 2  # inverse-variance share: 0 for an infinite region sigma, 1 without tiles
+    w_r = fusion_weight(region.sigma_dpt, s_t, shared)
     depth = 1.0 / q if q > 0 else math.inf
     return dataclasses.replace(pooled, depth_m=depth, inverse_depth=q), w_r
 

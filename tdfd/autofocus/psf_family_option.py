@@ -9,20 +9,24 @@ measurement says, not the simulator's ``--psf``).
 
 A family given or measured also reaches the depth model when its CNN takes the family
 (:func:`tell_estimator`); unknown leaves the model with the family it was exported with.
+The same camera JSON's ``calibration.mu_relative_uncertainty`` (a known-distance calibration
+records it: docs/CALIBRATION.md) is what the assist light's region fit counts for ``mu``
+(:func:`calibrated_mu_uncertainty`).
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
 from ..camera import Camera
 from ..camera_file import PSF_FAMILY_VALUES, load_camera_file
-from ..errors import InputError
+from ..errors import CameraError, InputError
 
-__all__ = ["add_psf_family_argument", "resolve_psf_family", "tell_estimator"]
+__all__ = ["add_psf_family_argument", "resolve_psf_family", "calibrated_mu_uncertainty", "tell_estimator"]
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +35,8 @@ def add_psf_family_argument(parser: argparse.ArgumentParser) -> None:
     """Add ``--psf-family`` to the ``autofocus`` parser."""
     parser.add_argument("--psf-family", default="unknown", metavar="FAMILY",
                         help="the lens's PSF family the DFD controller fits: gaussian, pillbox, unknown (default: both "
-                             "are tried), a camera JSON from 'tdfd calibrate' (its measured psf_family), or with --sim "
+                             "are tried), a camera JSON from 'tdfd calibrate' (its measured psf_family, and its mu uncertainty "
+                             "for the assist light's region fit), or with --sim "
                              "'calibrate' (measured by a focus sweep through the simulated optics)")
 
 
@@ -74,6 +79,27 @@ def resolve_psf_family(text: str, *, sim_camera: Camera | None = None, sim_psf: 
         log.warning("%s has no psf_family (the calibration did not decide it): the PSF family stays unknown", path)
         return None, 1.0
     return cf.psf_family, cf.psf_sigma_scale
+
+
+def calibrated_mu_uncertainty(text: str) -> float | None:
+    """``calibration.mu_relative_uncertainty`` of the camera JSON ``--psf-family text`` names
+    (:func:`tdfd.dfd.calibrate.mu_relative_uncertainty`, written by ``tdfd calibrate``'s
+    known-distance route); ``None`` for a family name, or a file that records none.
+
+    Raises:
+        CameraError: the file cannot be read, or records a value that is not a number in
+            [0, 1) (the message names the file).
+    """
+    path = Path(text)
+    if path.suffix.lower() != ".json":
+        return None
+    cal = load_camera_file(path).calibration or {}
+    if "mu_relative_uncertainty" not in cal:
+        return None
+    u = cal["mu_relative_uncertainty"]
+    if isinstance(u, bool) or not isinstance(u, (int, float)) or not (math.isfinite(u) and 0 <= u < 1):
+        raise CameraError(f"{path}: calibration.mu_relative_uncertainty must be a number in [0, 1), got {u!r}")
+    return float(u)
 
 
 def tell_estimator(estimator: Any, family: str | None) -> None:
