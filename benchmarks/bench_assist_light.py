@@ -299,11 +299,11 @@ pattern's edges on a texture-less target; `pool_lit_tiles`); a lit frame that cl
 f2 and f1 unlit from where the lens is, one frame lost). The one-region fit fused with the lit
 tiles (step 3, since 2026-11-26) needs the pattern inside the ROI's outer ring of tiles: on this
 bench's ROI (160 x 128 px) the two bars reach it nearly everywhere: one region fit in the
-whole benchmark (counted ad hoc by wrapping `fuse_with_region`: one projector target, region
-weight 0.12; with the fusion of two correlated estimates, 2026-11-26 evening, two projector
-trials moved: 0.30 m, 0.19 -> 0.26 px, in focus; 0.77 m, 3.0 -> 5.9 px, not in focus either way,
-8 -> 13 frames; every count in the tables unchanged; its time, 1.4 ms per fit, is charged when
-it runs).
+whole benchmark (counted ad hoc by wrapping `fuse_with_region`, 2026-11-26 evening: one
+projector target, region weight 0.12; its time, 1.2 ms per fit, 8.6 ms for a lens told it is a
+disk, is charged when it runs). The charges are wall times measured when the bench opens, so a
+run's maximum frames and times can move a little from one run to the next (the projector's
+maximum went 10 -> 13 -> 10 frames over three runs that evening, every count unchanged).
 Focus is declared on the controller's own evidence only (issue 20's rules, unchanged: an uncertainty under 0.25 px
 with the pair's own relative blur agreeing, or a verification frame). "ambient frame taken":
 the former policy, kept as an option (`ambient_frame=True`): the first frame is taken unlit

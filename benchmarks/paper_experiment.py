@@ -45,6 +45,8 @@ import torch
 from tdfd import Camera
 from tdfd.dfd import FourierRatioDFD
 from tdfd.dfd.calibrate import calibrate_mu, mu_relative_uncertainty
+from tdfd.autofocus.cross_blur import cross_blur_costs
+from tdfd.autofocus.region_cross_blur import fit_region_cross_blur
 from tdfd.dfd.region_fit import fit_region
 from tdfd.illumination import CoherentIllumination, ProjectorIllumination, illuminate
 from tdfd.forward import Defocus, DFDForward
@@ -102,6 +104,22 @@ def capture(camera: Camera, source, depth_m: float, size: tuple[int, int], gener
     return frames[:, :1], frames[:, 1:]
 
 
+def disk_sigma_scale(image_f1: torch.Tensor, image_f2: torch.Tensor, camera: Camera, depth_m: float) -> float:
+    """A disk lens's blur scale over ``camera``'s Gaussian ``mu`` from one pair at a known
+    distance (as ``mu`` is calibrated, and as ``tdfd calibrate`` writes ``psf_sigma_scale``):
+    the scale whose disk cross-blur (:func:`tdfd.autofocus.cross_blur.cross_blur_costs`) is
+    least at the known in-focus power; 0.005 steps over 0.5-2, refined by a parabola."""
+    frames = [(image_f1.reshape(image_f1.shape[-2:]).double().numpy(), camera.lens_powers_dpt[0]),
+              (image_f2.reshape(image_f2.shape[-2:]).double().numpy(), camera.lens_powers_dpt[1])]
+    p_cal = float(camera.in_focus_power_dpt(depth_m))
+    scales = np.arange(0.5, 2.0 + 1e-9, 0.005)
+    costs = np.array([cross_blur_costs(frames, camera, [p_cal], "pillbox", sigma_scale=float(k))[0] for k in scales])
+    i = int(np.clip(np.argmin(costs), 1, len(scales) - 2))
+    lo, mid, hi = costs[i - 1:i + 2]
+    bend = lo + hi - 2.0 * mid
+    return float(scales[i] + (0.5 * 0.005 * (lo - hi) / bend if bend > 0 else 0.0))
+
+
 def run_camera(camera: Camera, size: tuple[int, int], tile: int, max_bin: int, seed: int, repeats: int,
                refine=None, optics: str = "gaussian", calibration_cm: float = CALIBRATION_CM,
                refine_family: str | None = None) -> dict[str, dict[float, list[float]]]:
@@ -122,8 +140,12 @@ def run_camera(camera: Camera, size: tuple[int, int], tile: int, max_bin: int, s
     mu = calibrate_mu(camera, [(cal[0], cal[1], calibration_cm / 100)], tile=tile, max_bin=max_bin, gate_sharpness=8.0)
     cam = camera.replace(mu_px_per_m=mu)
     mu_unc = mu_relative_uncertainty(camera, [calibration_cm / 100])
+    disk_scale = (disk_sigma_scale(crop(cal[0]), crop(cal[1]), cam, calibration_cm / 100)
+                  if refine is not None and refine_family == "pillbox" else None)
     est = FourierRatioDFD(cam, tile=tile, stride=tile, max_bin=max_bin, gate_sharpness=8.0)  # one large region: sharp gate
     out: dict[str, dict[float, list[float]]] = {"mu": {0.0: [mu]}}
+    if disk_scale is not None:
+        out["disk_sigma_scale"] = {0.0: [disk_scale]}
     refined_from: dict[str, dict[float, list[str]]] = {}
     out["sources"] = refined_from  # type: ignore[assignment]
     for name, src in sources.items():
@@ -142,7 +164,10 @@ def run_camera(camera: Camera, size: tuple[int, int], tile: int, max_bin: int, s
                     region = 1.0 / fit.inverse_depth
                 errs.append(100.0 * (region - dcm / 100) / (dcm / 100))
                 if refine is not None:
-                    d_r, source = refine(i1, i2, fit)
+                    region_r = fit if disk_scale is None else fit_region_cross_blur(
+                        crop(i1)[0, 0].numpy(), crop(i2)[0, 0].numpy(), camera.lens_powers_dpt, cam,
+                        psf_family="pillbox", sigma_scale=disk_scale, mu_uncertainty=mu_unc)
+                    d_r, source = refine(i1, i2, region_r)
                     errs_r.append(100.0 * (d_r - dcm / 100) / (dcm / 100))
                     refined_from.setdefault(f"{name} refined", {}).setdefault(dcm, []).append(source)
             out[f"{name} analytic"][dcm] = errs
@@ -151,6 +176,9 @@ def run_camera(camera: Camera, size: tuple[int, int], tile: int, max_bin: int, s
             log.info("%s %.1f cm: %s", name, dcm, f"{statistics.median(errs):+.2f} %")
     return out
 
+
+#: result keys that are not error series per distance
+NOT_SERIES = ("mu", "sources", "calibration_cm", "disk_sigma_scale")
 
 #: ``--psf-family`` choices of the paper benchmarks (``optics``: the simulated optics' own family).
 PSF_FAMILY_CHOICES = ("optics", "gaussian", "pillbox", "unknown", "exported")
@@ -239,7 +267,7 @@ def plot(results: dict[str, dict[str, dict[float, list[float]]]], path: Path) ->
     fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 4.2), squeeze=False)
     for ax, (cam_name, res) in zip(axes[0], results.items()):
         for key, series in res.items():
-            if key in ("mu", "sources", "calibration_cm"):
+            if key in NOT_SERIES:
                 continue
             xs = list(series)
             ys = [statistics.median(v) for v in series.values()]
@@ -308,10 +336,14 @@ EXPLANATION = """
   a point, about a tenth of the median's standard error over the captures (the checks
   above; with the tiles' noise counted as independent of the region's, before 2026-11-26
   evening, their weight was 0.2-1.7 %); through a disk
-  lens the Gaussian fit is off by up to 40 % (coherent) / 110 % (projector) and the tiles
-  carry it, except at 45 cm, where equal blur makes the fit exact for any PSF. What the
-  tiles cannot reach through a disk is the far end (coherent 100 cm: -10.9 %): there the
-  model's lit tiles have little confidence (at most 0.05-0.1) and the region little weight.
+  lens the Gaussian fit is off by up to 40 % (coherent) / 110 % (projector). Told the lens
+  is a disk, the refined path's region fit is the pair's disk cross-blur
+  (`tdfd.autofocus.region_cross_blur`, as `AssistedDFDController` fits a lens told
+  pillbox; the disk's blur scale over the calibrated mu from the same calibration pair,
+  `disk_sigma_scale`, as `tdfd calibrate` writes `psf_sigma_scale`), exact for a disk: the
+  refined errors through a disk fall to the Gaussian lens's level (before 2026-11-26 evening
+  the Gaussian fit's bias left the estimate to the lit tiles, which reached 10.9 % at
+  coherent 100 cm, where they have little confidence).
 """
 
 
@@ -411,9 +443,13 @@ def main(argv: list[str] | None = None) -> None:
     sections = []
     for cam_name, res in results.items():
         mus = ", ".join(f"{m:.4g}" for m in res["mu"][0.0])
+        scale_note = ("" if "disk_sigma_scale" not in res else
+                      "The disk's blur scale over that mu from the same pair (the refined path's disk cross-blur "
+                      "region fit, `disk_sigma_scale`): " + ", ".join(f"{k:.3f}" for k in res["disk_sigma_scale"][0.0])
+                      + ". ")
         cal_cm = res["calibration_cm"][0.0][0]
         sources = res.get("sources", {})
-        keys = [k for k in res if k not in ("mu", "sources", "calibration_cm")]
+        keys = [k for k in res if k not in NOT_SERIES]
 
         def cell(k: str, d: float) -> str:
             region = sum(1 for x in sources.get(k, {}).get(d, []) if x == "region")
@@ -451,7 +487,7 @@ def main(argv: list[str] | None = None) -> None:
         if checks:
             summary += "\n\n" + "\n".join(checks) + ("\n\n(region n/m: in n of the m captures the one-region fit "
                                                    "carried over 90 % of the refined estimate's weight)")
-        sections.append(f"### {cam_name}\n\nmu calibrated from one coherent pair at {cal_cm:g} cm: {mus} px/m. "
+        sections.append(f"### {cam_name}\n\nmu calibrated from one coherent pair at {cal_cm:g} cm: {mus} px/m. {scale_note}"
                         f"{summary}\n\n{table}\n")
         print(f"{cam_name}: mu = {mus}\n{table}\n{summary}\n")
     print(conditioning)

@@ -17,7 +17,10 @@ is not. Neither is always better, so the two are weighed by their uncertainties:
 with ``e_rel`` the fit's own predicted relative error (:class:`~tdfd.dfd.FourierRatioDFD`),
 ``u_mu`` the relative uncertainty of ``mu`` (a pair's estimate moves by ``2 u_mu (q - q_eq)``
 dpt when ``mu`` is off by ``u_mu``: :mod:`tdfd.dfd.calibrate`, *Conditioning*), and
-``s_shape`` the PSF family's model term (:data:`SHAPE_SIGMA`: 0 for a Gaussian lens).
+``s_shape`` the PSF family's model term (:data:`SHAPE_SIGMA`: 0 for a Gaussian lens). A lens
+told it is a disk has its own exact region fit, the pair's disk cross-blur
+(:mod:`tdfd.autofocus.region_cross_blur`), whose shape term is 0 for it
+(:func:`region_sigma_dpt`'s ``fit_family``).
 
 The two estimates are not independent: the tiles see a subset of the region's pixels, so
 their noise is part of the region's. For an efficient estimator ``R`` and any unbiased ``T``
@@ -59,15 +62,19 @@ DEFAULT_MU_UNCERTAINTY = 0.02
 
 
 def region_sigma_dpt(inverse_depth: float, rel_error: float, camera: Camera, psf_family: str | None = None,
-                     mu_uncertainty: float = DEFAULT_MU_UNCERTAINTY) -> float:
-    """Standard uncertainty (dpt) of a Gaussian region fit's inverse depth (module docs).
+                     mu_uncertainty: float = DEFAULT_MU_UNCERTAINTY, fit_family: str = "gaussian") -> float:
+    """Standard uncertainty (dpt) of a region fit's inverse depth (module docs).
 
     Args:
         inverse_depth: the fit's ``q`` (1/m).
         rel_error: its predicted relative error (statistical).
         camera: the camera (its equal-blur inverse depth, :attr:`~tdfd.camera.Camera.equal_blur_inverse_depth`).
-        psf_family: ``"gaussian"``, ``"pillbox"`` or ``None`` (unknown): :data:`SHAPE_SIGMA`.
+        psf_family: the lens's family as told, ``"gaussian"``, ``"pillbox"`` or ``None`` (unknown).
         mu_uncertainty: relative uncertainty of the ``mu`` the fit used.
+        fit_family: the PSF model of the fit itself: ``"gaussian"`` (the Fourier ratio,
+            :data:`SHAPE_SIGMA`'s shape term where the lens is not known to be Gaussian) or
+            ``"pillbox"`` (a disk cross-blur fit, :mod:`tdfd.autofocus.region_cross_blur`:
+            no shape term for a lens told pillbox, the same 0.6 otherwise).
 
     Example:
         >>> from tdfd import Camera
@@ -79,13 +86,15 @@ def region_sigma_dpt(inverse_depth: float, rel_error: float, camera: Camera, psf
     """
     if psf_family not in SHAPE_SIGMA:
         raise InputError(f"psf_family must be one of {list(SHAPE_SIGMA)}, got {psf_family!r}")
+    if fit_family not in ("gaussian", "pillbox"):
+        raise InputError(f"fit_family must be 'gaussian' or 'pillbox', got {fit_family!r}")
     for name, v in (("inverse_depth", inverse_depth), ("rel_error", rel_error), ("mu_uncertainty", mu_uncertainty)):
         if not (math.isfinite(v) and v >= 0):
             raise InputError(f"{name} must be finite and >= 0, got {v}")
     q_eq = camera.equal_blur_inverse_depth
     off = abs(inverse_depth - q_eq) if q_eq is not None else inverse_depth
-    return math.sqrt((rel_error * inverse_depth) ** 2 + (2.0 * mu_uncertainty * off) ** 2
-                     + (SHAPE_SIGMA[psf_family] * off) ** 2)
+    shape = 0.0 if psf_family == fit_family else SHAPE_SIGMA["pillbox"]  # the model's bias through the other family
+    return math.sqrt((rel_error * inverse_depth) ** 2 + (2.0 * mu_uncertainty * off) ** 2 + (shape * off) ** 2)
 
 
 def fusion_weight(sigma_a: float, sigma_b: float, covariance: float = 0.0) -> float:

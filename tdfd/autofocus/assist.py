@@ -20,7 +20,9 @@ One focus request with a light allowed, by default (``ambient_frame=False``):
    the ROI's outer ring of tiles (the pattern lies inside the ROI: a pattern, or a texture,
    that reaches the ROI's edge would be cut by the region), one Fourier-ratio fit over the
    ROI's central square of the lit pair (:func:`tdfd.dfd.region_fit.fit_region`, the
-   paper's one region around the pattern) is fused with the pooled tiles as two correlated
+   paper's one region around the pattern; for a lens told it is a disk, the pair's disk
+   cross-blur over that square, :func:`~tdfd.autofocus.region_cross_blur.fit_region_cross_blur`,
+   which models it exactly) is fused with the pooled tiles as two correlated
    estimates (:func:`~tdfd.autofocus.lit_tiles.fuse_with_region`: the tiles' pixels are the
    region's, so the region's statistical error is their covariance); its uncertainty counts
    its statistics, ``mu``'s uncertainty and, for a lens not known to be Gaussian
@@ -83,6 +85,7 @@ from .evidence import estimate_uncertainty
 from .lit_tiles import cue_touches_border, fuse_with_region, lit_tile_mask, pair_cue_mask, pool_lit_tiles, subtract_ambient
 from .machine import Abort, Gen
 from .messages import Command, Estimation, Frame, Observation, State
+from .region_cross_blur import fit_region_cross_blur
 from .roi import Roi, roi_tile_mask
 from .sharpness import texture_snr
 
@@ -347,16 +350,15 @@ class AssistedDFDController(DFDController):
         log.info("lit pair (%s): the pattern covers %d of the ROI's %d tiles", lit.pattern, lit.lit_tiles, lit.roi_tiles)
         if (self.region_fit and lit.lit_f2 is not None and agg.inliers > 0 and math.isfinite(agg.inverse_depth)
                 and not cue_touches_border(pooled, mask)):
-            from ..dfd.region_fit import fit_region  # torch: loaded only when a lit pair is fitted
-
             try:
-                region = fit_region(roi.crop(lit.lit_f1.image), roi.crop(lit.lit_f2.image), self.camera,
-                                    psf_family=self.psf_family, mu_uncertainty=self.region_mu_uncertainty)
-            except TdfdError as exc:  # a small ROI, odd frames: the tiles alone
+                region = self._fit_region(roi.crop(lit.lit_f1.image), roi.crop(lit.lit_f2.image),
+                                          (lit.lit_f1.power_dpt, lit.lit_f2.power_dpt))
+            except TdfdError as exc:  # a small ROI, odd frames, no minimum in range: the tiles alone
                 log.info("no region fit: %s", exc)
                 return agg, pooled
             sigma = estimate_uncertainty(agg, obs.confidence, pooled, self.camera, self.confidence_scale).sigma_dpt
             self.result.region_fits += 1
+            self.result.disk_region_fits += self.psf_family == "pillbox"
             fused, lit.region_weight = fuse_with_region(agg, sigma, region)
             lit.region = region
             log.info("region fit %.4f +- %.4f dpt, lit tiles %.4f +- %.4f dpt: fused %.4f dpt (region weight %.2f)",
@@ -364,6 +366,18 @@ class AssistedDFDController(DFDController):
                      lit.region_weight)
             return fused, pooled
         return agg, pooled
+
+    def _fit_region(self, crop_f1: np.ndarray, crop_f2: np.ndarray, powers_dpt: tuple[float, float]) -> RegionFit:
+        """Step 3's region fit: for a lens told it is a disk, the pair's disk cross-blur
+        (:func:`~tdfd.autofocus.region_cross_blur.fit_region_cross_blur`, exact for it); else the
+        Gaussian Fourier ratio (:func:`tdfd.dfd.region_fit.fit_region`, the paper's)."""
+        if self.psf_family == "pillbox":
+            return fit_region_cross_blur(crop_f1, crop_f2, powers_dpt, self.camera, psf_family="pillbox",
+                                         sigma_scale=self.psf_sigma_scale, mu_uncertainty=self.region_mu_uncertainty)
+        from ..dfd.region_fit import fit_region  # torch: loaded only when a lit pair is fitted
+
+        return fit_region(crop_f1, crop_f2, self.camera, psf_family=self.psf_family,
+                          mu_uncertainty=self.region_mu_uncertainty)
 
     def _verify_light(self) -> str | None:
         """A verification frame is compared with the DFD pair: lit like it (an unlit frame of a
@@ -398,7 +412,9 @@ class AssistedDFDController(DFDController):
             return {"light": None, "lit_dropped": self.lit_dropped}
         return {"light": self.lit.pattern, "lit_tiles": self.lit.lit_tiles, "roi_tiles": self.lit.roi_tiles,
                 "ambient_subtracted": self.lit.subtracted, "light_reason": self.lit.reason,
-                "lit_cycles": self.lit_cycles, "region_weight": round(self.lit.region_weight, 3)}
+                "lit_cycles": self.lit_cycles, "region_weight": round(self.lit.region_weight, 3),
+                "region_model": None if self.lit.region is None else ("disk cross-blur" if self.psf_family == "pillbox"
+                                                                       else "Gaussian Fourier ratio")}
 
 
 # the hooks this policy overrides or uses in DFDController / StateMachine:

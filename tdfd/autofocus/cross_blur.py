@@ -47,7 +47,8 @@ from ..errors import InputError
 from .evidence import sigma_px_per_dpt, working_powers_dpt
 from .roi import Roi
 
-__all__ = ["CrossBlurFocus", "cross_blur_focus", "bessel_j1", "disk_otf", "evenly_thinned", "PSF_FAMILIES"]
+__all__ = ["CrossBlurFocus", "cross_blur_focus", "cross_blur_costs", "bessel_j1", "disk_otf", "evenly_thinned",
+           "PSF_FAMILIES"]
 
 #: the PSF families the search fits: a Gaussian and a uniform disk (pillbox) of the same RMS radius
 PSF_FAMILIES = ("gaussian", "pillbox")
@@ -184,6 +185,49 @@ def _cost(power: list[np.ndarray], cross: dict[tuple[int, int], np.ndarray], off
     return total
 
 
+def _spectra(frames: Sequence[tuple[np.ndarray, float]], roi: Roi | None, shapes: Sequence[str]):
+    """The windowed ROI spectra's powers and cross terms, the frequency grids and the frames' powers."""
+    if len(frames) < 2 or max(p for _, p in frames) - min(p for _, p in frames) < 0.02:
+        raise InputError("cross_blur_focus needs at least two frames 0.02 dpt apart")
+    if not set(shapes) <= set(PSF_FAMILIES) or not shapes:
+        raise InputError(f"shapes must be among {PSF_FAMILIES}, got {tuple(shapes)}")
+    crops = [np.asarray(im if roi is None else roi.crop(np.asarray(im)), dtype=np.float64) for im, _ in frames]
+    if len({c.shape for c in crops}) != 1 or crops[0].ndim != 2 or min(crops[0].shape) < 16:
+        raise InputError(f"frames must be (H, W) of one shape with an ROI of at least 16 px, got {[c.shape for c in crops]}")
+    h, w = crops[0].shape
+    window = np.hanning(h)[:, None] * np.hanning(w)[None, :]
+    spectra = [np.fft.rfft2((c - c.mean()) * window) for c in crops]
+    power = [np.abs(sp) ** 2 for sp in spectra]
+    cross = {(i, j): (spectra[i] * spectra[j].conj()).real for i in range(len(spectra)) for j in range(i + 1, len(spectra))}
+    f2 = np.fft.fftfreq(h)[:, None] ** 2 + np.fft.rfftfreq(w)[None, :] ** 2
+    return power, cross, f2, np.sqrt(f2), np.array([float(p) for _, p in frames])
+
+
+def cross_blur_costs(frames: Sequence[tuple[np.ndarray, float]], camera: Camera, candidates_dpt: Sequence[float],
+                     shape: str, *, roi: Roi | None = None, sigma_scale: float = 1.0) -> np.ndarray:
+    """The profile likelihood (per frame pair and frequency, as :attr:`CrossBlurFocus.cost`) at
+    each candidate in-focus power of ``candidates_dpt``, for one PSF family ``shape``: the cost
+    curve :func:`cross_blur_focus` minimises, for a caller that needs its shape (a curvature).
+
+    Raises:
+        InputError: as :func:`cross_blur_focus`, or a non-positive ``sigma_scale``.
+
+    Example:
+        >>> import numpy as np
+        >>> from tdfd import Camera
+        >>> rng = np.random.default_rng(0)
+        >>> a = rng.random((64, 64)); b = a.copy()          # equal frames: equal blur, focus midway
+        >>> c = cross_blur_costs([(a, 1.7), (b, 2.7)], Camera.preset("reference"), [1.9, 2.2, 2.5], "gaussian")
+        >>> int(np.argmin(c)), float(c[1]) < 1e-9 * float(c[0])
+        (1, True)
+    """
+    if not sigma_scale > 0:
+        raise InputError(f"sigma_scale must be > 0, got {sigma_scale}")
+    power, cross, f2, f, powers = _spectra(frames, roi, (shape,))
+    m = sigma_px_per_dpt(camera) * float(sigma_scale)
+    return np.array([_cost(power, cross, powers - float(c), m, shape, f2, f) / f2.size for c in candidates_dpt])
+
+
 def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera, roi: Roi | None = None, *,
                      span_dpt: tuple[float, float] | None = None, shapes: Sequence[str] = PSF_FAMILIES,
                      coarse_dpt: float = 0.1, fine_dpt: float = 0.01, sigma_scale: float = 1.0) -> CrossBlurFocus:
@@ -205,23 +249,9 @@ def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera,
         InputError: fewer than two frames at distinct powers, frames of different shapes,
             an ROI under 16 px, an unknown shape or non-positive steps.
     """
-    if len(frames) < 2 or max(p for _, p in frames) - min(p for _, p in frames) < 0.02:
-        raise InputError("cross_blur_focus needs at least two frames 0.02 dpt apart")
-    if not set(shapes) <= set(PSF_FAMILIES) or not shapes:
-        raise InputError(f"shapes must be among {PSF_FAMILIES}, got {tuple(shapes)}")
     if not (coarse_dpt > 0 and fine_dpt > 0 and sigma_scale > 0):
         raise InputError("coarse_dpt, fine_dpt and sigma_scale must be > 0")
-    crops = [np.asarray(im if roi is None else roi.crop(np.asarray(im)), dtype=np.float64) for im, _ in frames]
-    if len({c.shape for c in crops}) != 1 or crops[0].ndim != 2 or min(crops[0].shape) < 16:
-        raise InputError(f"frames must be (H, W) of one shape with an ROI of at least 16 px, got {[c.shape for c in crops]}")
-    h, w = crops[0].shape
-    window = np.hanning(h)[:, None] * np.hanning(w)[None, :]
-    spectra = [np.fft.rfft2((c - c.mean()) * window) for c in crops]
-    power = [np.abs(sp) ** 2 for sp in spectra]
-    cross = {(i, j): (spectra[i] * spectra[j].conj()).real for i in range(len(spectra)) for j in range(i + 1, len(spectra))}
-    f2 = np.fft.fftfreq(h)[:, None] ** 2 + np.fft.rfftfreq(w)[None, :] ** 2
-    f = np.sqrt(f2)
-    powers = np.array([float(p) for _, p in frames])
+    power, cross, f2, f, powers = _spectra(frames, roi, shapes)
     lo, hi = working_powers_dpt(camera) if span_dpt is None else sorted(float(v) for v in span_dpt)
     m = sigma_px_per_dpt(camera) * float(sigma_scale)
     per_shape: list[CrossBlurFocus] = []

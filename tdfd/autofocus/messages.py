@@ -249,6 +249,8 @@ class AFResult:
             check of a known disk PSF: about a fifth of a 3-frame search; charged likewise).
         region_fits: one-region fits of a lit pair (the assist policy's step 3, 1.5-10 ms each;
             charged likewise).
+        disk_region_fits: those of them made by the disk cross-blur (a lens told it is a disk,
+            :mod:`tdfd.autofocus.region_cross_blur`; charged at their own cost).
         refocus_count: DFD cycles run (continuous mode counts every re-estimate).
         history: ``(t_s, power_dpt, depth_m)`` of every focus decision (continuous mode).
     """
@@ -277,6 +279,7 @@ class AFResult:
     cross_blur_measurements: int = 0
     pair_cross_blur_checks: int = 0
     region_fits: int = 0
+    disk_region_fits: int = 0
     refocus_count: int = 0
     history: list[tuple[float, float, float | None]] = field(default_factory=list)
 

@@ -109,7 +109,8 @@ class SimBench:
         pair_cross_blur_s: likewise per 2-frame check of a known disk PSF (a cross-blur search
             of the DFD pair, one family: about a fifth of a 3-frame search; :mod:`.charges`).
         region_fit_s: likewise per region fit of a lit pair (:class:`~tdfd.autofocus.assist.AssistedDFDController`,
-            step 3; measured when a light is given).
+            step 3; measured when a light is given, the Gaussian Fourier ratio and a disk lens's
+            cross-blur each; a number given is charged for both).
         true_camera: the simulated optics when they differ from ``camera`` (a
             :class:`~tdfd.camera_file.CameraFile`: its camera, ECVFL power offset and focus
             breathing, as in :mod:`tdfd.capture.sim`). ``camera`` is then what the
@@ -156,6 +157,7 @@ class SimBench:
         self.cross_blur_charge_s: float | None = cross_blur_s
         self.pair_cross_blur_charge_s: float | None = pair_cross_blur_s
         self.region_fit_charge_s: float | None = region_fit_s
+        self.disk_region_fit_charge_s: float | None = region_fit_s
 
     def calibrate_evidence(self, repeats: int = 5) -> float:
         """Median wall time (s) of one relative-blur measurement on the ROI (:func:`~.charges.evidence_wall_s`)."""
@@ -182,6 +184,9 @@ class SimBench:
         if self.region_fit_charge_s is None:
             self.region_fit_charge_s = (region_fit_wall_s(self.camera, self.roi, self.readout_hw)
                                         if self.compute_s != 0 and self.light is not None else 0.0)
+        if self.disk_region_fit_charge_s is None:
+            self.disk_region_fit_charge_s = (region_fit_wall_s(self.camera, self.roi, self.readout_hw, disk=True)
+                                             if self.compute_s != 0 and self.light is not None else 0.0)
         if self.pair_cross_blur_charge_s is None:
             self.pair_cross_blur_charge_s = (pair_cross_blur_wall_s(self.camera, self.roi, self.readout_hw)
                                              if self.compute_s != 0 else 0.0)
@@ -308,7 +313,8 @@ class SimBench:
             time_ms=(t_end - t0 + result.blur_measurements * float(self.evidence_charge_s or 0.0)
                      + result.cross_blur_measurements * float(self.cross_blur_charge_s or 0.0)
                      + result.pair_cross_blur_checks * float(self.pair_cross_blur_charge_s or 0.0)
-                     + result.region_fits * float(self.region_fit_charge_s or 0.0)) * 1e3,
+                     + (result.region_fits - result.disk_region_fits) * float(self.region_fit_charge_s or 0.0)
+                     + result.disk_region_fits * float(self.disk_region_fit_charge_s or 0.0)) * 1e3,
             method=result.method,
             requested=requested, status=result.status, reason=reason, confidence=result.confidence,
             compute_ms=compute, verified=result.verified, trial=trial, evidence=result.evidence,

@@ -14,7 +14,9 @@ from typing import Any, Callable
 import numpy as np
 
 from ...camera import Camera
+from ...errors import TdfdError
 from ..cross_blur import cross_blur_focus
+from ..region_cross_blur import fit_region_cross_blur
 from ..relative_blur import relative_blur_px2, relative_blur_search_px2
 from ..roi import Roi, roi_crop_box
 
@@ -42,17 +44,27 @@ def calibration_texture(readout_hw: tuple[int, int]) -> np.ndarray:
     return cv2.GaussianBlur(rng.uniform(0.2, 0.8, readout_hw).astype(np.float32), (0, 0), 1.0)
 
 
-def region_fit_wall_s(camera: Camera, roi: Roi, readout_hw: tuple[int, int], repeats: int = 5) -> float:
-    """One region fit over the ROI's central square (the assisted controller's step 3,
-    :func:`tdfd.dfd.region_fit.fit_region`; its estimator built before the timing, as the
-    controller reuses it)."""
+def region_fit_wall_s(camera: Camera, roi: Roi, readout_hw: tuple[int, int], repeats: int = 5,
+                      disk: bool = False) -> float:
+    """One region fit over the ROI's central square (the assisted controller's step 3):
+    :func:`tdfd.dfd.region_fit.fit_region` (its estimator built before the timing, as the
+    controller reuses it), or with ``disk`` the disk cross-blur
+    (:func:`tdfd.autofocus.region_cross_blur.fit_region_cross_blur`) of a lens told it is a disk."""
     import cv2
-
-    from ...dfd.region_fit import fit_region  # torch: loaded only for a bench with a light (the CLI imports this torch-free)
 
     a = calibration_texture(readout_hw)
     b = cv2.GaussianBlur(a, (0, 0), 2.0)
     ra, rb = roi.crop(a), roi.crop(b)
+    if disk:
+        def fit() -> None:
+            try:
+                fit_region_cross_blur(ra, rb, camera.lens_powers_dpt, camera, psf_family="pillbox")
+            except TdfdError:  # the timing texture need not hold a minimum in range: the search ran all the same
+                pass
+
+        return median_wall_s(fit, repeats)
+    from ...dfd.region_fit import fit_region  # torch: loaded only for a bench with a light (the CLI imports this torch-free)
+
     return median_wall_s(lambda: fit_region(ra, rb, camera), repeats)
 
 
