@@ -300,7 +300,7 @@ f2 and f1 unlit from where the lens is, one frame lost). The one-region fit fuse
 tiles (step 3, since 2026-11-26) needs the pattern inside the ROI's outer ring of tiles: on this
 bench's ROI (160 x 128 px) the two bars reach it nearly everywhere: one region fit in the
 whole benchmark (counted ad hoc by wrapping `fuse_with_region`, 2026-11-26 evening: one
-projector target, region weight 0.12; its time, 1.2 ms per fit, 8.6 ms for a lens told it is a
+projector target, region weight 0.12; its time, 1.3 ms per fit, 5 ms for a lens told it is a
 disk, is charged when it runs). The charges are wall times measured when the bench opens, so a
 run's maximum frames and times can move a little from one run to the next (the projector's
 maximum went 10 -> 13 -> 10 frames over three runs that evening, every count unchanged).

@@ -47,8 +47,8 @@ from ..errors import InputError
 from .evidence import sigma_px_per_dpt, working_powers_dpt
 from .roi import Roi
 
-__all__ = ["CrossBlurFocus", "cross_blur_focus", "cross_blur_costs", "bessel_j1", "disk_otf", "evenly_thinned",
-           "PSF_FAMILIES"]
+__all__ = ["CrossBlurFocus", "cross_blur_focus", "cross_blur_costs", "windowed_spectra", "otf", "bessel_j1", "disk_otf",
+           "evenly_thinned", "PSF_FAMILIES"]
 
 #: the PSF families the search fits: a Gaussian and a uniform disk (pillbox) of the same RMS radius
 PSF_FAMILIES = ("gaussian", "pillbox")
@@ -164,7 +164,9 @@ def disk_otf(radius_px: float, f: np.ndarray) -> np.ndarray:
     return _disk_profile(np.abs(2.0 * math.pi * float(radius_px) * np.asarray(f, dtype=np.float64)))
 
 
-def _otf(sigma_px: float, shape: str, f2: np.ndarray, f: np.ndarray) -> np.ndarray:
+def otf(sigma_px: float, shape: str, f2: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """The OTF of a ``shape`` PSF of RMS radius ``sigma_px`` at frequencies ``f`` (``f2 = f**2``): a
+    Gaussian's ``exp(-2 pi^2 sigma^2 f^2)``, a disk's of radius ``2 sigma`` (:func:`disk_otf`)."""
     if shape == "gaussian":
         return np.exp(-2.0 * math.pi**2 * sigma_px**2 * f2)
     return disk_otf(2.0 * sigma_px, f)
@@ -175,7 +177,7 @@ def _cost(power: list[np.ndarray], cross: dict[tuple[int, int], np.ndarray], off
     """The profile likelihood of the candidate whose frames lie ``offsets`` dpt from focus.
     The OTFs are real, so ``|S_i H_j - S_j H_i|^2 = |S_i|^2 H_j^2 + |S_j|^2 H_i^2 - 2 H_i H_j Re(S_i S_j*)``
     from the spectra's powers ``power`` and cross terms ``cross`` (real arrays)."""
-    otfs = [_otf(m * abs(float(o)), shape, f2, f) for o in offsets]
+    otfs = [otf(m * abs(float(o)), shape, f2, f) for o in offsets]
     sq = [h * h for h in otfs]
     total = 0.0
     for (i, j), c in cross.items():
@@ -185,8 +187,11 @@ def _cost(power: list[np.ndarray], cross: dict[tuple[int, int], np.ndarray], off
     return total
 
 
-def _spectra(frames: Sequence[tuple[np.ndarray, float]], roi: Roi | None, shapes: Sequence[str]):
-    """The windowed ROI spectra's powers and cross terms, the frequency grids and the frames' powers."""
+def windowed_spectra(frames: Sequence[tuple[np.ndarray, float]], roi: Roi | None = None,
+                     shapes: Sequence[str] = PSF_FAMILIES):
+    """``(power, cross, f2, f, powers)``: the Hann-windowed ROI spectra's powers (a list) and real
+    cross terms (``{(i, j): Re(S_i S_j*)}``), the squared and plain frequency grids (cycles/px, the
+    ``rfft2`` layout) and the frames' powers (dpt), checked as :func:`cross_blur_focus` checks them."""
     if len(frames) < 2 or max(p for _, p in frames) - min(p for _, p in frames) < 0.02:
         raise InputError("cross_blur_focus needs at least two frames 0.02 dpt apart")
     if not set(shapes) <= set(PSF_FAMILIES) or not shapes:
@@ -223,7 +228,7 @@ def cross_blur_costs(frames: Sequence[tuple[np.ndarray, float]], camera: Camera,
     """
     if not sigma_scale > 0:
         raise InputError(f"sigma_scale must be > 0, got {sigma_scale}")
-    power, cross, f2, f, powers = _spectra(frames, roi, (shape,))
+    power, cross, f2, f, powers = windowed_spectra(frames, roi, (shape,))
     m = sigma_px_per_dpt(camera) * float(sigma_scale)
     return np.array([_cost(power, cross, powers - float(c), m, shape, f2, f) / f2.size for c in candidates_dpt])
 
@@ -251,7 +256,7 @@ def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera,
     """
     if not (coarse_dpt > 0 and fine_dpt > 0 and sigma_scale > 0):
         raise InputError("coarse_dpt, fine_dpt and sigma_scale must be > 0")
-    power, cross, f2, f, powers = _spectra(frames, roi, shapes)
+    power, cross, f2, f, powers = windowed_spectra(frames, roi, shapes)
     lo, hi = working_powers_dpt(camera) if span_dpt is None else sorted(float(v) for v in span_dpt)
     m = sigma_px_per_dpt(camera) * float(sigma_scale)
     per_shape: list[CrossBlurFocus] = []
