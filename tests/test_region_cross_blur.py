@@ -90,6 +90,11 @@ def test_bad_input_is_refused():
         fit_region_cross_blur(np.full_like(a, math.nan), b, POWERS, REF, psf_family="pillbox")
     with pytest.raises(InputError, match="0.02 dpt apart"):
         fit_region_cross_blur(a, b, (1.7, 1.71), REF, psf_family="pillbox")
+    for powers in ((1.7,), (1.7, math.nan), (1.7, 2.7, 3.0)):
+        with pytest.raises(InputError, match="two finite powers"):
+            fit_region_cross_blur(a, b, powers, REF, psf_family="pillbox")
+    with pytest.raises(InputError, match="sigma_scale"):
+        fit_region_cross_blur(a, b, POWERS, REF, psf_family="pillbox", sigma_scale=0.0)
     far_a, far_b = _lit_pair(20.0, size=128)  # focus far beyond the camera's range: the minimum sits at the edge
     with pytest.raises(RangeError, match="edge"):
         fit_region_cross_blur(far_a, far_b, POWERS, REF, psf_family="pillbox")

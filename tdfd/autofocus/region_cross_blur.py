@@ -121,12 +121,15 @@ def fit_region_cross_blur(image_f1: np.ndarray, image_f2: np.ndarray, powers_dpt
 
     Raises:
         ShapeError: frames of different shapes, not 2-D, or smaller than :data:`MIN_REGION_PX`.
-        InputError: an unknown family, powers less than 0.02 dpt apart, non-finite images.
+        InputError: an unknown family, not two finite powers or less than 0.02 dpt apart,
+            non-finite images, a non-positive ``sigma_scale``.
         RangeError: the minimum lies at the edge of the working powers, or the cost curve
             has no curvature there (no estimate to fuse).
     """
     if psf_family not in PSF_FAMILIES:
         raise InputError(f"psf_family must be one of {PSF_FAMILIES}, got {psf_family!r}")
+    if len(powers_dpt) != 2 or not all(math.isfinite(float(p)) for p in powers_dpt):
+        raise InputError(f"powers_dpt must be the pair's two finite powers (dpt), got {tuple(powers_dpt)}")
     a, b = (np.asarray(im, dtype=np.float64) for im in (image_f1, image_f2))
     a, b = (x.reshape(x.shape[-2:]) if x.ndim == 4 and x.shape[:2] == (1, 1) else x for x in (a, b))
     if a.shape != b.shape or a.ndim != 2:
