@@ -45,7 +45,8 @@ import torch
 from tdfd import Camera
 from tdfd.dfd import FourierRatioDFD
 from tdfd.dfd.calibrate import calibrate_mu, mu_relative_uncertainty
-from tdfd.autofocus.cross_blur import cross_blur_costs
+from tdfd.autofocus.cross_blur import profile_cost, windowed_spectra
+from tdfd.autofocus.evidence import sigma_px_per_dpt
 from tdfd.autofocus.region_cross_blur import fit_region_cross_blur
 from tdfd.dfd.region_fit import fit_region
 from tdfd.illumination import CoherentIllumination, ProjectorIllumination, illuminate
@@ -107,13 +108,16 @@ def capture(camera: Camera, source, depth_m: float, size: tuple[int, int], gener
 def disk_sigma_scale(image_f1: torch.Tensor, image_f2: torch.Tensor, camera: Camera, depth_m: float) -> float:
     """A disk lens's blur scale over ``camera``'s Gaussian ``mu`` from one pair at a known
     distance (as ``mu`` is calibrated, and as ``tdfd calibrate`` writes ``psf_sigma_scale``):
-    the scale whose disk cross-blur (:func:`tdfd.autofocus.cross_blur.cross_blur_costs`) is
-    least at the known in-focus power; 0.005 steps over 0.5-2, refined by a parabola."""
+    the scale whose disk cross-blur (:func:`tdfd.autofocus.cross_blur.profile_cost`, the pair's
+    spectra computed once) is least at the known in-focus power; 0.005 steps over 0.5-2, refined
+    by a parabola."""
     frames = [(image_f1.reshape(image_f1.shape[-2:]).double().numpy(), camera.lens_powers_dpt[0]),
               (image_f2.reshape(image_f2.shape[-2:]).double().numpy(), camera.lens_powers_dpt[1])]
     p_cal = float(camera.in_focus_power_dpt(depth_m))
     scales = np.arange(0.5, 2.0 + 1e-9, 0.005)
-    costs = np.array([cross_blur_costs(frames, camera, [p_cal], "pillbox", sigma_scale=float(k))[0] for k in scales])
+    power, cross, f2, f, powers = windowed_spectra(frames, None, ("pillbox",))
+    m = sigma_px_per_dpt(camera)
+    costs = np.array([profile_cost(power, cross, powers - p_cal, m * float(k), "pillbox", f2, f) for k in scales])
     i = int(np.clip(np.argmin(costs), 1, len(scales) - 2))
     lo, mid, hi = costs[i - 1:i + 2]
     bend = lo + hi - 2.0 * mid

@@ -170,7 +170,8 @@ def fuse_inverse_depths(q_a: float, sigma_a: float, q_b: float, sigma_b: float,
 
 @dataclass(frozen=True)
 class RegionFit:
-    """One Gaussian Fourier-ratio fit over a region.
+    """One fit over a region: the Gaussian Fourier ratio (:func:`tdfd.dfd.region_fit.fit_region`)
+    or a disk lens's cross-blur (:func:`tdfd.autofocus.region_cross_blur.fit_region_cross_blur`).
 
     Attributes:
         inverse_depth: ``q`` (1/m), clamped to the estimator's extended range.
@@ -178,6 +179,7 @@ class RegionFit:
         rel_error: the fit's own predicted relative error (statistical: :attr:`noise_sigma_dpt`).
         confidence: the estimator's confidence in [0, 1].
         size_px: the side of the square region fitted.
+        fit_family: the PSF model of the fit, ``"gaussian"`` or ``"pillbox"``.
     """
 
     inverse_depth: float
@@ -185,6 +187,7 @@ class RegionFit:
     rel_error: float
     confidence: float
     size_px: int
+    fit_family: str = "gaussian"
 
     @property
     def noise_sigma_dpt(self) -> float:

@@ -89,7 +89,10 @@ from .region_cross_blur import fit_region_cross_blur
 from .roi import Roi, roi_tile_mask
 from .sharpness import texture_snr
 
-__all__ = ["AssistedDFDController", "LitPair"]
+__all__ = ["AssistedDFDController", "LitPair", "REGION_MODELS"]
+
+#: the region fit's model by its PSF family, as :meth:`AssistedDFDController.lit_summary` names it
+REGION_MODELS = {"gaussian": "Gaussian Fourier ratio", "pillbox": "disk cross-blur"}
 
 log = logging.getLogger(__name__)
 
@@ -358,7 +361,7 @@ class AssistedDFDController(DFDController):
                 return agg, pooled
             sigma = estimate_uncertainty(agg, obs.confidence, pooled, self.camera, self.confidence_scale).sigma_dpt
             self.result.region_fits += 1
-            self.result.disk_region_fits += self.psf_family == "pillbox"
+            self.result.disk_region_fits += region.fit_family == "pillbox"
             fused, lit.region_weight = fuse_with_region(agg, sigma, region)
             lit.region = region
             log.info("region fit %.4f +- %.4f dpt, lit tiles %.4f +- %.4f dpt: fused %.4f dpt (region weight %.2f)",
@@ -413,8 +416,7 @@ class AssistedDFDController(DFDController):
         return {"light": self.lit.pattern, "lit_tiles": self.lit.lit_tiles, "roi_tiles": self.lit.roi_tiles,
                 "ambient_subtracted": self.lit.subtracted, "light_reason": self.lit.reason,
                 "lit_cycles": self.lit_cycles, "region_weight": round(self.lit.region_weight, 3),
-                "region_model": None if self.lit.region is None else ("disk cross-blur" if self.psf_family == "pillbox"
-                                                                       else "Gaussian Fourier ratio")}
+                "region_model": None if self.lit.region is None else REGION_MODELS[self.lit.region.fit_family]}
 
 
 # the hooks this policy overrides or uses in DFDController / StateMachine:

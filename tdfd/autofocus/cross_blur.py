@@ -47,7 +47,7 @@ from ..errors import InputError
 from .evidence import sigma_px_per_dpt, working_powers_dpt
 from .roi import Roi
 
-__all__ = ["CrossBlurFocus", "cross_blur_focus", "cross_blur_costs", "windowed_spectra", "otf", "bessel_j1", "disk_otf",
+__all__ = ["CrossBlurFocus", "cross_blur_focus", "windowed_spectra", "profile_cost", "otf", "bessel_j1", "disk_otf",
            "evenly_thinned", "PSF_FAMILIES"]
 
 #: the PSF families the search fits: a Gaussian and a uniform disk (pillbox) of the same RMS radius
@@ -172,11 +172,12 @@ def otf(sigma_px: float, shape: str, f2: np.ndarray, f: np.ndarray) -> np.ndarra
     return disk_otf(2.0 * sigma_px, f)
 
 
-def _cost(power: list[np.ndarray], cross: dict[tuple[int, int], np.ndarray], offsets: np.ndarray, m: float,
-          shape: str, f2: np.ndarray, f: np.ndarray) -> float:
+def profile_cost(power: list[np.ndarray], cross: dict[tuple[int, int], np.ndarray], offsets: np.ndarray, m: float,
+                 shape: str, f2: np.ndarray, f: np.ndarray) -> float:
     """The profile likelihood of the candidate whose frames lie ``offsets`` dpt from focus.
     The OTFs are real, so ``|S_i H_j - S_j H_i|^2 = |S_i|^2 H_j^2 + |S_j|^2 H_i^2 - 2 H_i H_j Re(S_i S_j*)``
-    from the spectra's powers ``power`` and cross terms ``cross`` (real arrays)."""
+    from the spectra's powers ``power`` and cross terms ``cross`` (real arrays, :func:`windowed_spectra`,
+    or their sums over rings of ``|f|`` with ``f`` the rings' frequencies); summed, not averaged."""
     otfs = [otf(m * abs(float(o)), shape, f2, f) for o in offsets]
     sq = [h * h for h in otfs]
     total = 0.0
@@ -208,31 +209,6 @@ def windowed_spectra(frames: Sequence[tuple[np.ndarray, float]], roi: Roi | None
     return power, cross, f2, np.sqrt(f2), np.array([float(p) for _, p in frames])
 
 
-def cross_blur_costs(frames: Sequence[tuple[np.ndarray, float]], camera: Camera, candidates_dpt: Sequence[float],
-                     shape: str, *, roi: Roi | None = None, sigma_scale: float = 1.0) -> np.ndarray:
-    """The profile likelihood (per frame pair and frequency, as :attr:`CrossBlurFocus.cost`) at
-    each candidate in-focus power of ``candidates_dpt``, for one PSF family ``shape``: the cost
-    curve :func:`cross_blur_focus` minimises, for a caller that needs its shape (a curvature).
-
-    Raises:
-        InputError: as :func:`cross_blur_focus`, or a non-positive ``sigma_scale``.
-
-    Example:
-        >>> import numpy as np
-        >>> from tdfd import Camera
-        >>> rng = np.random.default_rng(0)
-        >>> a = rng.random((64, 64)); b = a.copy()          # equal frames: equal blur, focus midway
-        >>> c = cross_blur_costs([(a, 1.7), (b, 2.7)], Camera.preset("reference"), [1.9, 2.2, 2.5], "gaussian")
-        >>> int(np.argmin(c)), float(c[1]) < 1e-9 * float(c[0])
-        (1, True)
-    """
-    if not sigma_scale > 0:
-        raise InputError(f"sigma_scale must be > 0, got {sigma_scale}")
-    power, cross, f2, f, powers = windowed_spectra(frames, roi, (shape,))
-    m = sigma_px_per_dpt(camera) * float(sigma_scale)
-    return np.array([_cost(power, cross, powers - float(c), m, shape, f2, f) / f2.size for c in candidates_dpt])
-
-
 def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera, roi: Roi | None = None, *,
                      span_dpt: tuple[float, float] | None = None, shapes: Sequence[str] = PSF_FAMILIES,
                      coarse_dpt: float = 0.1, fine_dpt: float = 0.01, sigma_scale: float = 1.0) -> CrossBlurFocus:
@@ -262,10 +238,10 @@ def cross_blur_focus(frames: Sequence[tuple[np.ndarray, float]], camera: Camera,
     per_shape: list[CrossBlurFocus] = []
     for shape in shapes:
         coarse = np.arange(lo, hi + 1e-9, coarse_dpt)
-        costs = [_cost(power, cross, powers - c, m, shape, f2, f) for c in coarse]
+        costs = [profile_cost(power, cross, powers - c, m, shape, f2, f) for c in coarse]
         k = int(np.argmin(costs))
         fine = np.arange(max(lo, coarse[k] - coarse_dpt), min(hi, coarse[k] + coarse_dpt) + 1e-9, fine_dpt)
-        fcosts = [_cost(power, cross, powers - c, m, shape, f2, f) for c in fine]
+        fcosts = [profile_cost(power, cross, powers - c, m, shape, f2, f) for c in fine]
         kf = int(np.argmin(fcosts))
         runner_power, runner_ratio = _runner_up(coarse, np.asarray(costs), k)
         per_shape.append(CrossBlurFocus(float(fine[kf]), shape, k in (0, len(coarse) - 1), fcosts[kf] / f2.size,

@@ -15,8 +15,8 @@ for an ECVFL pair) ``D = 0`` whatever ``mu``: a pair there measures the distance
 ``0.5 |a'/a| dq``, i.e. ``dq / (2 |q - q_eq|)`` for an ECVFL pair
 (:func:`mu_relative_uncertainty`). The paper calibrates at 46 cm, 1.2 dpt from its pair's
 midpoint (1.03 m); the reference camera's midpoint is 0.4545 m, so one pair at 46 cm fixes
-its ``mu`` only to +-5 % (simulated paper pattern, 8 captures: -4.7 .. +4.3 %) against
-+-0.1 % at 30 cm (docs/BENCHMARKS.md, ``paper``). :func:`calibrate_mu` refuses such a fit.
+its ``mu`` only to a few per cent (simulated paper pattern, 6 captures: -3.0 .. +2.2 %)
+against -0.4 .. 0.0 % at 30 cm (docs/BENCHMARKS.md, ``paper``, *Calibration distance*). :func:`calibrate_mu` refuses such a fit.
 
 Example:
     >>> import torch
