@@ -50,14 +50,23 @@ class DepthModel:
     run_told: Callable[[torch.Tensor, torch.Tensor, list], tuple[torch.Tensor, torch.Tensor, torch.Tensor]] | None = None
 
 
-def load_depth_model(path: str | Path, threads: int = 2) -> DepthModel:
+def load_depth_model(path: str | Path, threads: int = 2, calibrated: bool = True) -> DepthModel:
     """Load ``path``: an ``.onnx`` file (ONNX Runtime) or a :meth:`tdfd.model.DFDModel.save` stem.
 
+    Args:
+        path: the model.
+        threads: torch / ONNX Runtime threads.
+        calibrated: ``False``: the torch model without its post-hoc scale calibration
+            (:mod:`tdfd.model.scale_calibration`), i.e. the CNN's own predicted scale.
+
     Raises:
-        ModelError: missing files, or an ONNX file without a positive ``confidence_scale`` in
-            its ``tdfd.model`` metadata.
+        ModelError: missing files, an ONNX file without a positive ``confidence_scale`` in
+            its ``tdfd.model`` metadata, or ``calibrated=False`` for an ONNX file (the
+            calibration is part of its graph).
     """
     p = Path(path)
+    if p.suffix == ".onnx" and not calibrated:
+        raise ModelError(f"{p}: an ONNX file's scale calibration is part of its graph; load the safetensors stem")
     if p.suffix == ".onnx":
         from tdfd.runtime import DepthRuntime
 
@@ -74,9 +83,12 @@ def load_depth_model(path: str | Path, threads: int = 2) -> DepthModel:
         return DepthModel(p.name, rt.tile, rt.stride, float(b0), rt.camera, run_onnx)
 
     from tdfd.model import DFDModel, training_codes
+    from tdfd.model.scale_calibration import ScaleCalibration
 
     torch.set_num_threads(threads)
     model = DFDModel.load(p).eval()
+    if not calibrated:
+        model.scale_calibration = ScaleCalibration()
 
     def run_torch(i1: torch.Tensor, i2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         with torch.no_grad():

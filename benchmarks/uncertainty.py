@@ -7,7 +7,9 @@ bins by confidence (deciles); in each, the median ``|e|`` observed is compared w
 that the predicted Laplace errors would give (:func:`laplace_mixture_median`: the tiles of a
 decile have different ``b``, so their errors are a mixture). Calibrated: the ratio observed /
 predicted is 1, and half of the tiles have ``|e|`` at most their own predicted median
-``b ln 2``.
+``b ln 2``. The shipped model's ``b`` is calibrated after training
+(:mod:`tdfd.model.scale_calibration`); a decile's ratio carries the sampling error of the
+scenes behind it (:func:`scene_bootstrap`).
 """
 
 from __future__ import annotations
@@ -15,43 +17,15 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from tdfd.errors import InputError
+from tdfd.model.scale_calibration import laplace_mixture_median
 
-__all__ = ["laplace_mixture_median", "decile_table", "fit_scale_remap", "apply_scale_remap", "plot_calibration",
-           "CALIBRATION_TOLERANCE"]
+__all__ = ["laplace_mixture_median", "decile_table", "scene_bootstrap", "plot_calibration", "CALIBRATION_TOLERANCE"]
 
 #: the target: observed / predicted within 20 % in every decile (issue 19)
 CALIBRATION_TOLERANCE = 0.2
-
-
-def laplace_mixture_median(scales: torch.Tensor) -> float:
-    """Median of ``|e|`` over tiles whose errors ``e`` are Laplace with scales ``scales``.
-
-    The ``m`` at which the tiles' mean ``P(|e| <= m) = 1 - exp(-m / b)`` is one half.
-
-    Example:
-        >>> round(laplace_mixture_median(torch.tensor([0.01, 0.01])), 6)  # one Laplace: b ln 2
-        0.006931
-    """
-    b = torch.as_tensor(scales, dtype=torch.float64).flatten()
-    if b.numel() == 0 or not bool((b >= 0).all()) or bool(torch.isnan(b).any()):
-        raise InputError("scales must be a non-empty set of values >= 0")
-    finite = b[torch.isfinite(b)]
-    if finite.numel() * 2 <= b.numel():  # half the tiles or more with no prediction: no finite median
-        return math.inf
-    lo, hi = 0.0, max(float(finite.max()), 1e-300) * 50.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        # b = 0 counts as P = 1 (exact), b = inf as P = 0
-        p = torch.where(b > 0, 1.0 - torch.exp(-mid / b.clamp_min(1e-300)), torch.ones_like(b)).mean()
-        if float(p) < 0.5:
-            lo = mid
-        else:
-            hi = mid
-    return 0.5 * (lo + hi)
 
 
 def decile_table(confidence: torch.Tensor, scale: torch.Tensor, error: torch.Tensor, bins: int = 10) -> list[dict]:
@@ -94,66 +68,47 @@ def decile_table(confidence: torch.Tensor, scale: torch.Tensor, error: torch.Ten
     return rows
 
 
-def fit_scale_remap(scale: torch.Tensor, error: torch.Tensor, bins: int = 20) -> tuple[torch.Tensor, torch.Tensor]:
-    """A monotone post-hoc remap of the predicted scale that makes it match the observed errors.
+def scene_bootstrap(confidence: torch.Tensor, scale: torch.Tensor, error: torch.Tensor, scene: torch.Tensor,
+                    bins: int = 10, reps: int = 200, seed: int = 0) -> torch.Tensor:
+    """Standard error of each bin's observed / predicted ratio, resampling whole scenes.
 
-    The tiles are split into ``bins`` equal-count bins by ``b``; in each, the factor ``f``
-    that makes the Laplace mixture median of ``f b`` equal the observed median ``|e|`` moves
-    the bin's median ``b`` to a knot ``b'``; the knots are made non-decreasing in ``b`` (a
-    remap must keep the confidence's order).
+    A scene's tiles share its texture, PSF and noise, so their errors are correlated; the
+    bootstrap draws scenes with replacement (``reps`` times, a seeded generator) and
+    recomputes :func:`decile_table` on their tiles.
 
     Args:
-        scale: ``(N,)`` predicted Laplace scale ``b`` (> 0).
-        error: ``(N,)`` observed signed relative error.
-        bins: number of bins.
+        confidence, scale, error: as :func:`decile_table`, ``(N,)``.
+        scene: ``(N,)`` scene identifier per tile.
+        bins: as :func:`decile_table`.
+        reps: bootstrap resamples (>= 2).
+        seed: the generator's seed.
 
     Returns:
-        ``(log_b, log_b_remapped)`` knots, ``(bins,)`` each, increasing in ``log_b``.
+        ``(bins,)`` float64 standard deviations of the ratio over the resamples.
 
     Raises:
-        InputError: shapes differ, fewer tiles than bins, or a scale that is not positive and finite.
-
-    Example:
-        >>> g = torch.Generator().manual_seed(0)
-        >>> b = torch.rand(20000, generator=g, dtype=torch.float64) * 0.05 + 0.01
-        >>> u = torch.rand(20000, generator=g, dtype=torch.float64) - 0.5
-        >>> e = 2 * b * -u.sign() * torch.log1p(-2 * u.abs())  # Laplace errors of scale 2 b
-        >>> kb, kr = fit_scale_remap(b, e, bins=10)
-        >>> bool(((kr - kb).exp() - 2).abs().max() < 0.25)  # errors twice the predicted: factor 2
-        True
+        InputError: shapes differ, ``reps < 2`` or fewer than two scenes.
     """
-    b = torch.as_tensor(scale, dtype=torch.float64).flatten()
-    e = torch.as_tensor(error, dtype=torch.float64).flatten().abs()
-    if b.numel() != e.numel():
-        raise InputError(f"scale and error must have as many values, got {b.numel()} and {e.numel()}")
-    if bins < 1 or b.numel() < bins:
-        raise InputError(f"need at least {bins} tiles for {bins} bins, got {b.numel()}")
-    if not bool(((b > 0) & torch.isfinite(b)).all()):
-        raise InputError("scale must be positive and finite")
-    order = torch.argsort(b, stable=True)
-    log_b, log_r = [], []
-    for part in torch.tensor_split(order, bins):
-        factor = float(e[part].median()) / laplace_mixture_median(b[part])
-        mid = float(b[part].median())
-        log_b.append(math.log(mid))
-        log_r.append(math.log(max(mid * factor, 1e-300)))
-    kb = torch.tensor(log_b, dtype=torch.float64)
-    kr = torch.cummax(torch.tensor(log_r, dtype=torch.float64), 0).values
-    return kb, kr
-
-
-def apply_scale_remap(scale: torch.Tensor, remap: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
-    """``b'`` of :func:`fit_scale_remap`'s knots: piecewise linear in ``log b``, the end knots'
-    factors held beyond them."""
-    kb, kr = (torch.as_tensor(k, dtype=torch.float64).numpy() for k in remap)
-    lb = torch.as_tensor(scale, dtype=torch.float64).log()
-    shift = np.interp(lb.numpy(), kb, kr - kb)  # the end knots' shifts held beyond them
-    return (lb + torch.from_numpy(shift)).exp()
+    sc = torch.as_tensor(scene).flatten()
+    if sc.numel() != torch.as_tensor(confidence).numel():
+        raise InputError(f"scene must have one value per tile, got {sc.numel()} for {torch.as_tensor(confidence).numel()}")
+    ids, inverse = torch.unique(sc, return_inverse=True)
+    if reps < 2 or ids.numel() < 2:
+        raise InputError(f"need reps >= 2 and at least two scenes, got {reps} and {ids.numel()}")
+    members = [torch.nonzero(inverse == k).flatten() for k in range(ids.numel())]
+    g = torch.Generator().manual_seed(seed)
+    ratios = []
+    for _ in range(reps):
+        pick = torch.randint(ids.numel(), (ids.numel(),), generator=g)
+        idx = torch.cat([members[int(k)] for k in pick])
+        ratios.append([r["ratio"] for r in decile_table(confidence[idx], scale[idx], error[idx], bins)])
+    return torch.tensor(ratios, dtype=torch.float64).std(0)
 
 
 def plot_calibration(tables: dict[str, list[dict]], path: Path, title: str = "") -> None:
     """Predicted vs observed median error per decile (log-log, with the +-20 % band) and the
-    ratio per decile, one series per scene set; written to ``path`` (PNG)."""
+    ratio per decile with its standard error (a row's ``ratio_se`` when present), one series
+    per scene set (dashed: names starting "CNN's own scale"); written to ``path`` (PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -164,8 +119,10 @@ def plot_calibration(tables: dict[str, list[dict]], path: Path, title: str = "")
     for name, rows in tables.items():
         pred = [100 * r["predicted"] for r in rows]
         obs = [100 * r["observed"] for r in rows]
-        ax0.plot(pred, obs, "o-", label=name)
-        ax1.plot(range(1, len(rows) + 1), [r["ratio"] for r in rows], "o-", label=name)
+        style = "o--" if name.startswith("CNN's own scale") else "o-"
+        ax0.plot(pred, obs, style, label=name)
+        ax1.errorbar(range(1, len(rows) + 1), [r["ratio"] for r in rows], yerr=[r.get("ratio_se", 0.0) for r in rows],
+                     fmt=style, capsize=2, label=name)
         fin = [v for v in pred + obs if 0 < v < math.inf]
         if fin:
             lo, hi = min(lo, min(fin)), max(hi, max(fin))

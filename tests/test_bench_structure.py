@@ -12,7 +12,7 @@ from benchmarks.bench_bound import plane_fisher, tile_fisher
 from benchmarks.bench_onnx import latency_ratio
 from benchmarks.depth_edges import depth_discontinuities, edge_tiles
 from benchmarks.depth_models import predicted_scale
-from benchmarks.uncertainty import decile_table, laplace_mixture_median
+from benchmarks.uncertainty import decile_table, laplace_mixture_median, scene_bootstrap
 from tdfd import Camera
 from tdfd.errors import InputError
 from tdfd.model import DFDModel
@@ -229,3 +229,23 @@ def test_the_told_runner_tells_each_scene_its_family_and_the_summary_compares():
     told = summarise_structure(tiles, (0.3, 1.0))["told"]
     assert told["tiles"] == 4 and told["told"] == pytest.approx(0.01, rel=1e-4)
     assert told["untold"] == pytest.approx(0.04, rel=1e-4) and told["share_told"] == 0.5
+
+
+def test_scene_bootstrap_counts_scenes_not_tiles():
+    """Tiles whose errors share their scene's scale: resampling scenes gives a larger standard
+    error than treating every tile as its own scene (the tiles are not independent)."""
+    g = torch.Generator().manual_seed(11)
+    scenes, per = 12, 150
+    scene_factor = torch.exp(0.8 * torch.randn(scenes, generator=g, dtype=torch.float64)).repeat_interleave(per)
+    b = torch.exp(torch.empty(scenes * per, dtype=torch.float64).uniform_(-6.0, -2.0, generator=g))
+    u = torch.rand(scenes * per, generator=g, dtype=torch.float64) - 0.5
+    e = scene_factor * b * -u.sign() * torch.log1p(-2 * u.abs())
+    conf = 1 / (1 + (b / 0.01) ** 2)
+    by_scene = scene_bootstrap(conf, b, e, torch.arange(scenes).repeat_interleave(per), bins=5, reps=60)
+    by_tile = scene_bootstrap(conf, b, e, torch.arange(scenes * per), bins=5, reps=60)
+    assert by_scene.shape == (5,) and bool((by_scene > 0).all())
+    assert float(by_scene.mean()) > 2 * float(by_tile.mean())
+    with pytest.raises(InputError, match="two scenes"):
+        scene_bootstrap(conf, b, e, torch.zeros(scenes * per), bins=5)
+    with pytest.raises(InputError, match="one value per tile"):
+        scene_bootstrap(conf, b, e, torch.zeros(3), bins=5)

@@ -14,7 +14,10 @@ per-tile intermediates into features (:func:`tile_features`), and lets a small C
   expects to be large gets a small confidence.
 
 Training minimises the Laplace negative log-likelihood ``|e| / b + log b`` (see
-:mod:`training`), which makes ``b`` and hence the confidence calibrated.
+:mod:`training`); after training, a monotone map of ``log b`` fitted on held-out scenes
+(:class:`~tdfd.model.scale_calibration.ScaleCalibration`, :mod:`training.calibrate_scale`)
+makes the median error in every band of ``b`` its Laplace median ``b ln 2`` (issue 19). The
+confidence is computed from the calibrated ``b``.
 
 With the refinement head at zero (a fresh model) ``depth`` equals ``depth_analytic``
 exactly. The forward pass has no data-dependent Python control flow and no ``torch.fft``,
@@ -52,6 +55,7 @@ from ..optics.thin_lens import camera_sigmas
 from ..registration import BreathingRegistration
 from .psf_family_code import NUM_FAMILY_CHANNELS, append_family_maps, family_code
 from .refine import RefineNet
+from .scale_calibration import ScaleCalibration
 
 __all__ = ["DFDModel", "RefinedResult", "tile_features", "num_features", "context_sizes", "pool_measurements",
            "MODEL_FORMAT"]
@@ -228,6 +232,9 @@ class DFDModel(nn.Module):
         psf_family: the family the model is told at inference (``"gaussian"``,
             ``"pillbox"``; ``None``: unknown), e.g. the camera file's measured ``psf_family``
             (:meth:`set_psf_family`). Only with ``psf_family_input``.
+        scale_calibration: knots ``{"log_b": [...], "log_b_calibrated": [...]}`` of the
+            post-hoc map of the predicted log scale
+            (:class:`~tdfd.model.scale_calibration.ScaleCalibration`); ``None``: identity.
         **refine_config: keyword arguments of :class:`~tdfd.model.refine.RefineNet`
             (``hidden``, ``blocks``, ``kernel_size``).
 
@@ -240,7 +247,7 @@ class DFDModel(nn.Module):
     def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, *, analytic: dict[str, Any] | None = None,
                  confidence_scale: float = 0.01, correction_scale: float = 1.0, context: int | Sequence[int] = 1,
                  magnification_per_dpt: float = 0.0, psf_family_input: bool = False, psf_family: str | None = None,
-                 **refine_config: Any) -> None:
+                 scale_calibration: dict[str, list[float]] | None = None, **refine_config: Any) -> None:
         super().__init__()
         analytic = dict(analytic or {})
         for key in ("tile", "stride", "validate", "camera"):
@@ -272,6 +279,8 @@ class DFDModel(nn.Module):
         except TypeError as exc:
             raise InputError(f"bad refine option: {exc}") from exc
         self.set_psf_family(psf_family)
+        #: the post-hoc map of the predicted log scale (identity until :mod:`training.calibrate_scale` sets one)
+        self.scale_calibration = ScaleCalibration.from_config(scale_calibration)
         self.validate = True
         #: after :meth:`load`: whether the analytic layer still gives the features the CNN
         #: was trained on (``None``: not checked).
@@ -333,7 +342,7 @@ class DFDModel(nn.Module):
                 "analytic": self.analytic_config, "confidence_scale": self.confidence_scale,
                 "correction_scale": self.correction_scale, "context": self.context,
                 "magnification_per_dpt": self.magnification_per_dpt, "psf_family_input": self.psf_family_input,
-                "psf_family": self.psf_family,
+                "psf_family": self.psf_family, "scale_calibration": self.scale_calibration.to_config(),
                 "refine": {k: v for k, v in self.refine.config().items() if k not in ("in_channels", "out_channels")}}
 
     # ------------------------------------------------------------------ compute
@@ -402,7 +411,7 @@ class DFDModel(nn.Module):
         q_a = inverse_depth.to(wdt).clamp(q_lo, q_hi)
         q = (q_a + self.correction_scale * out[:, 0:1]).clamp(q_lo, q_hi)
         base = torch.log(rel_error.to(wdt).clamp_min(1e-6)).clamp(*_LOG_REL_BOUNDS)
-        log_scale = (base + out[:, 1:2]).clamp(*_LOG_SCALE_BOUNDS)
+        log_scale = self.scale_calibration((base + out[:, 1:2]).clamp(*_LOG_SCALE_BOUNDS)).clamp(*_LOG_SCALE_BOUNDS)
         ratio = torch.exp(log_scale) / self.confidence_scale
         return q, log_scale, 1.0 / (1.0 + ratio * ratio), q_a
 
@@ -494,9 +503,25 @@ class DFDModel(nn.Module):
                        confidence_scale=cfg["confidence_scale"], correction_scale=cfg["correction_scale"],
                        context=cfg.get("context", 1), magnification_per_dpt=cfg.get("magnification_per_dpt", 0.0),
                        psf_family_input=cfg.get("psf_family_input", False), psf_family=cfg.get("psf_family"),
+                       scale_calibration=cfg.get("scale_calibration"),
                        **cfg["refine"])
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelError(f"invalid model description: {exc!r}") from exc
+
+    @classmethod
+    def read_description(cls, path: str | Path) -> dict[str, Any]:
+        """The JSON description :meth:`save` wrote (``<stem>.json``), e.g. its ``extra``.
+
+        Raises:
+            ModelError: the file is missing or not valid JSON.
+        """
+        meta = cls._paths(path)[1]
+        try:
+            return json.loads(meta.read_text())
+        except OSError as exc:
+            raise ModelError(f"cannot read model description {meta}: {exc}") from exc
+        except json.JSONDecodeError as exc:
+            raise ModelError(f"{meta} is not valid JSON: {exc}") from exc
 
     @classmethod
     def load(cls, path: str | Path, map_location: str | torch.device = "cpu") -> "DFDModel":
@@ -511,10 +536,7 @@ class DFDModel(nn.Module):
         weights, meta = cls._paths(path)
         if not weights.is_file() or not meta.is_file():
             raise ModelError(f"model files {weights} and {meta} must both exist")
-        try:
-            cfg = json.loads(meta.read_text())
-        except json.JSONDecodeError as exc:
-            raise ModelError(f"{meta} is not valid JSON: {exc}") from exc
+        cfg = cls.read_description(path)
         model = cls.from_config(cfg)
         try:
             state = load_file(str(weights), device=str(map_location))

@@ -1,0 +1,195 @@
+"""The post-hoc calibration of the predicted error scale (issue 19): the map, its fit, the
+model's JSON round trip, the ONNX export and the training stage that fits it."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from export import export_model, realistic_pairs, verify_onnx
+from export.testing import make_test_model
+from tdfd import Camera
+from tdfd.errors import InputError, ModelError
+from tdfd.model import DFDModel
+from tdfd.model.scale_calibration import (ScaleCalibration, calibrate_log_scale, fit_scale_calibration,
+                                          laplace_mixture_median, validate_knots)
+from tests.onnx_parity import assert_parity
+from training import calibrate_scale
+
+KNOTS = ([-6.0, -4.5, -3.0, -1.0], [-5.6, -4.4, -3.1, -1.0])  # factors 1.49, 1.11, 0.90, 1.00
+
+
+def _laplace(scale: torch.Tensor, g: torch.Generator) -> torch.Tensor:
+    u = torch.rand(scale.shape, generator=g, dtype=torch.float64) - 0.5
+    return scale * -u.sign() * torch.log1p(-2 * u.abs())
+
+
+def test_map_is_interpolation_of_the_shift_with_the_end_shifts_held():
+    x, y = (torch.tensor(k, dtype=torch.float64) for k in KNOTS)
+    lb = torch.linspace(-9.0, 2.0, 301, dtype=torch.float64)
+    want = lb.numpy() + np.interp(lb.numpy(), x.numpy(), (y - x).numpy())  # np.interp holds the end values
+    got = calibrate_log_scale(lb, x, y)
+    assert np.allclose(got.numpy(), want, atol=1e-12)
+    assert float(got[0] - lb[0]) == pytest.approx(0.4) and float(got[-1] - lb[-1]) == pytest.approx(0.0)
+    assert bool((got[1:] >= got[:-1]).all())  # keeps the confidence's order
+
+
+def test_map_gradcheck_float64():
+    x, y = (torch.tensor(k, dtype=torch.float64) for k in KNOTS)
+    lb = torch.tensor([-7.0, -5.3, -4.0, -2.2, -0.5], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda v: calibrate_log_scale(v, x, y), (lb,))
+
+
+@pytest.mark.parametrize("x, y, match", [
+    ([-5.0], [-5.0], "at least 2"),
+    ([-5.0, -4.0, -3.0], [-5.0, -4.0], "as many"),
+    ([-5.0, -5.0], [-5.0, -4.0], "strictly increasing"),
+    ([-5.0, -4.0], [-4.0, -4.5], "non-decreasing"),
+    ([-5.0, math.nan], [-5.0, -4.0], "finite"),
+    ([-5.0, "a"], [-5.0, -4.0], "numbers"),
+])
+def test_bad_knots_are_named(x, y, match):
+    with pytest.raises(InputError, match=match):
+        validate_knots(x, y)
+
+
+def test_config_round_trip_and_identity():
+    cal = ScaleCalibration(*KNOTS)
+    again = ScaleCalibration.from_config(json.loads(json.dumps(cal.to_config())))
+    lb = torch.linspace(-8, 1, 50)
+    assert torch.allclose(again(lb), cal(lb))
+    assert ScaleCalibration.from_config(None).to_config() is None
+    assert torch.equal(ScaleCalibration()(lb), lb)
+    with pytest.raises(InputError, match="log_b_calibrated"):
+        ScaleCalibration.from_config({"log_b": [0.0, 1.0]})
+    with pytest.raises(InputError, match="both"):
+        ScaleCalibration([0.0, 1.0], None)
+
+
+def test_fit_recovers_a_scale_dependent_miscalibration():
+    """Errors Laplace with scale f(b) b, f from 1.5 at small b to 0.8 at large b: the fitted
+    map's knots carry f, and through it every decile's median matches within 10 %."""
+    g = torch.Generator().manual_seed(3)
+    b = torch.exp(torch.empty(60000, dtype=torch.float64).uniform_(math.log(0.003), math.log(0.3), generator=g))
+    factor = 1.5 - 0.7 * (b.log() - math.log(0.003)) / math.log(100.0)
+    e = _laplace(factor * b, g)
+    kb, kc = fit_scale_calibration(b, e, bins=20, smooth=3)
+    want = 1.5 - 0.7 * (kb - math.log(0.003)) / math.log(100.0)
+    assert bool((((kc - kb).exp() / want) - 1).abs()[2:-2].max() < 0.08)  # ends: the moving average's edge
+    calibrated = calibrate_log_scale(b.log(), kb, kc).exp()
+    order = torch.argsort(calibrated)
+    for part in torch.tensor_split(order, 10):
+        ratio = float(e[part].abs().median()) / laplace_mixture_median(calibrated[part])
+        assert abs(ratio - 1) < 0.1
+
+
+def test_min_factor_one_only_widens_the_scale():
+    """With ``min_factor = 1`` a band whose errors are smaller than predicted
+    keeps the CNN's scale; a band whose errors are larger is widened as without the bound."""
+    g = torch.Generator().manual_seed(4)
+    b = torch.exp(torch.empty(40000, dtype=torch.float64).uniform_(math.log(0.003), math.log(0.3), generator=g))
+    factor = torch.where(b < 0.03, torch.full_like(b, 1.4), torch.full_like(b, 0.7))
+    e = _laplace(factor * b, g)
+    kb, kc = fit_scale_calibration(b, e, bins=10, smooth=1, min_factor=1.0)
+    f = (kc - kb).exp()
+    assert bool((f >= 1 - 1e-12).all())
+    assert bool(((f[:3] - 1.4).abs() < 0.12).all()) and bool(((f[-3:] - 1.0).abs() < 1e-9).all())
+    kb_free, kc_free = fit_scale_calibration(b, e, bins=10, smooth=1)  # the default: no bound
+    assert bool((((kc_free - kb_free).exp()[-3:] - 0.7).abs() < 0.07).all())
+    with pytest.raises(InputError, match="min_factor"):
+        fit_scale_calibration(b, e, bins=10, min_factor=0.0)
+
+
+def test_fit_refuses_bad_input():
+    b, e = torch.full((100,), 0.01), torch.zeros(100)
+    with pytest.raises(InputError, match="equal median"):
+        fit_scale_calibration(b, e, bins=10)
+    with pytest.raises(InputError, match="as many"):
+        fit_scale_calibration(b, e[:50])
+    with pytest.raises(InputError, match="positive"):
+        fit_scale_calibration(torch.cat([b[:99], torch.tensor([-1.0])]), e, bins=2)
+    with pytest.raises(InputError, match="odd"):
+        fit_scale_calibration(torch.linspace(0.01, 1, 100), e, bins=4, smooth=2)
+    with pytest.raises(InputError, match="tiles per bin"):
+        fit_scale_calibration(torch.linspace(0.01, 1, 10), e[:10], bins=6)
+
+
+def _pair(model: DFDModel, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    return realistic_pairs(model.camera, 2, 160, 192, seed=seed)
+
+
+def test_model_applies_the_calibration_to_the_confidence_and_saves_it(tmp_path):
+    model = make_test_model(0).eval()
+    i1, i2 = _pair(model)
+    with torch.no_grad():
+        plain = model.analyse(i1, i2)
+        model.scale_calibration = ScaleCalibration(*KNOTS)
+        cal = model.analyse(i1, i2)
+    want = calibrate_log_scale(plain.log_scale, *(torch.tensor(k) for k in KNOTS))
+    assert torch.allclose(cal.log_scale, want, atol=1e-6)
+    b = cal.log_scale.exp() / model.confidence_scale
+    assert torch.allclose(cal.confidence, 1 / (1 + b * b), atol=1e-6)
+    assert not torch.allclose(cal.confidence, plain.confidence, atol=1e-3)  # the knots move these tiles
+    assert torch.equal(cal.depth, plain.depth)  # the depth is untouched
+    weights, meta = model.save(tmp_path / "m")
+    assert json.loads(meta.read_text())["scale_calibration"]["log_b"] == pytest.approx(KNOTS[0])
+    loaded = DFDModel.load(tmp_path / "m").eval()
+    with torch.no_grad():
+        again = loaded.analyse(i1, i2)
+    assert torch.allclose(again.confidence, cal.confidence, atol=1e-6)
+    # the weights file does not hold the knots: an uncalibrated save has the same tensors
+    model.scale_calibration = ScaleCalibration()
+    w2, _ = model.save(tmp_path / "plain")
+    a, c = load_file(str(weights)), load_file(str(w2))
+    assert a.keys() == c.keys() and all(torch.equal(a[k], c[k]) for k in a)
+
+
+def test_bad_calibration_in_a_model_description_is_a_model_error(tmp_path):
+    model = make_test_model(0)
+    _, meta = model.save(tmp_path / "m")
+    cfg = json.loads(meta.read_text())
+    cfg["scale_calibration"] = {"log_b": [-3.0, -4.0], "log_b_calibrated": [-3.0, -2.0]}
+    meta.write_text(json.dumps(cfg))
+    with pytest.raises(ModelError, match="strictly increasing"):
+        DFDModel.load(tmp_path / "m")
+
+
+def test_onnx_export_carries_the_calibration(tmp_path):
+    model = make_test_model(0)
+    model.scale_calibration = ScaleCalibration(*KNOTS)
+    path = tmp_path / "cal.onnx"
+    export_model(model, path)
+    report = verify_onnx(path, model, sizes=[(64, 64), (160, 192)], batches=[1, 2])
+    assert_parity(report, cases=4)
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    i1, i2 = _pair(model, seed=5)
+    _, conf, _ = sess.run(None, {"image_f1": i1.numpy(), "image_f2": i2.numpy()})
+    model.scale_calibration = ScaleCalibration()
+    with torch.no_grad():
+        _, conf_plain, _ = model.eval()(i1, i2)
+    assert not np.allclose(conf, conf_plain.numpy(), atol=1e-3)  # the graph holds the map, not the identity
+
+
+def test_training_stage_fits_and_writes_the_calibration(tmp_path):
+    """``python -m training.calibrate_scale`` on a small model: the knots land in the JSON,
+    the weights file is unchanged, the earlier ``extra`` is kept and the fit is recorded."""
+    model = DFDModel(Camera.preset("reference"), tile=64, stride=32, hidden=8, blocks=1)
+    model.save(tmp_path / "m", extra={"training": {"steps": 1}})
+    before = (tmp_path / "m.safetensors").read_bytes()
+    assert calibrate_scale.main(["--model", str(tmp_path / "m"), "--planes", "8", "--scenes", "1", "--bins", "4",
+                                 "--smooth", "1", "--threads", "1"]) == 0
+    meta = json.loads((tmp_path / "m.json").read_text())
+    cal = meta["scale_calibration"]
+    assert len(cal["log_b"]) == 4 and cal["log_b_calibrated"] == sorted(cal["log_b_calibrated"])
+    assert meta["extra"]["training"] == {"steps": 1}
+    fit = meta["extra"]["scale_calibration_fit"]
+    assert fit["planes"] == 8 and fit["scenes_per_layout"] == 1 and fit["plane_seed"] == calibrate_scale.PLANE_SEED
+    assert fit["tiles"] > fit["plane_tiles"] > 0  # planes and structure scenes both counted
+    assert (tmp_path / "m.safetensors").read_bytes() == before
+    assert DFDModel.load(tmp_path / "m").scale_calibration.to_config() is not None
