@@ -114,7 +114,7 @@ def plot_calibration(tables: dict[str, list[dict]], path: Path, title: str = "")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.5))
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 5.5))
     lo, hi = math.inf, 0.0
     for name, rows in tables.items():
         pred = [100 * r["predicted"] for r in rows]
@@ -133,12 +133,12 @@ def plot_calibration(tables: dict[str, list[dict]], path: Path, title: str = "")
                          color="0.85", label="+-20 %")
     ax0.set(xscale="log", yscale="log", xlabel="predicted median |relative error| (%)",
             ylabel="observed median |relative error| (%)", title="per confidence decile")
-    ax0.legend(fontsize=8)
+    ax0.legend(fontsize=7)
     ax1.axhspan(1 - CALIBRATION_TOLERANCE, 1 + CALIBRATION_TOLERANCE, color="0.85")
     ax1.axhline(1.0, color="k", lw=1)
     ax1.set(yscale="log", xlabel="confidence decile (1 = least confident)", ylabel="observed / predicted",
             title="calibration ratio (target: inside the band)")
-    ax1.legend(fontsize=8)
+    ax1.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
     if title:
         fig.suptitle(title)
     fig.tight_layout()
