@@ -14,7 +14,7 @@ import torch
 from safetensors.torch import load_file
 
 from tests.tiny_training import TINY
-from training.config import load_config
+from training.config import ConfigError, load_config
 from training.loop import CHECKPOINT_NAME, train
 
 HERE = Path(__file__).resolve().parent
@@ -99,3 +99,28 @@ def test_training_lowers_the_validation_loss(tmp_path):
     assert len(nll) == 40
     assert min(nll) < nll[0] - 0.1 and nll[-1] < nll[0], (nll[0], min(nll), nll[-1])
     assert max(nll) < nll[0] + 0.5 and max(mre) < 2 * mre[0], (max(nll), max(mre))
+
+
+def test_calibration_stage_runs_after_training_when_enabled(tmp_path):
+    """``calibration.enabled``: the run's model is saved with a fitted scale calibration and its
+    fit record; without it (the default) the saved model has none."""
+    from tdfd.model import DFDModel
+
+    cfg = _cfg(tmp_path, "cal", "calibration.enabled=true", "calibration.planes=4", "calibration.scenes=1",
+               "calibration.bins=2", "calibration.smooth=1", "final_eval=false")
+    train(cfg)
+    meta = json.loads((Path(cfg.out_dir) / "model.json").read_text())
+    assert len(meta["scale_calibration"]["log_b"]) == 2
+    assert meta["extra"]["scale_calibration_fit"]["planes"] == 4 and meta["extra"]["training"]["steps"] == 6
+    assert DFDModel.load(Path(cfg.out_dir) / "model").scale_calibration.to_config() == meta["scale_calibration"]
+    plain = _cfg(tmp_path, "plain", "final_eval=false")
+    train(plain)
+    assert json.loads((Path(plain.out_dir) / "model.json").read_text())["scale_calibration"] is None
+
+
+@pytest.mark.parametrize("setting, match", [("calibration.bins=1", "bins"), ("calibration.smooth=2", "odd"),
+                                            ("calibration.min_factor=-1", "min_factor"),
+                                            ("calibration.planes=0", "planes")])
+def test_calibration_config_is_checked(tmp_path, setting, match):
+    with pytest.raises(ConfigError, match=match):
+        _cfg(tmp_path, "bad", setting)

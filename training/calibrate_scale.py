@@ -1,7 +1,9 @@
 """The training pipeline's last stage: calibrate a trained model's predicted error scale.
 
-Run from the repository root, after ``python -m training`` (the shipped model's command is
-in ``models/README.md``)::
+A training run does it itself when its config enables it (``[calibration] enabled = true``,
+as ``training/configs/reference.toml`` does: :class:`training.config.CalibrationConfig`);
+for a model trained without it, run from the repository root (the shipped model's commands
+are in ``models/README.md``)::
 
     .venv/bin/python -m training.calibrate_scale --model models/reference
 

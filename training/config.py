@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import tomllib
 import typing
 from dataclasses import dataclass, field
@@ -23,8 +24,8 @@ from typing import Any, Iterable
 from tdfd.camera_file import resolve_camera
 from tdfd.errors import CameraError, InputError
 
-__all__ = ["TEXTURED_FAMILIES", "ConfigError", "DataConfig", "ModelConfig", "OptimConfig", "EvalConfig", "TrainConfig",
-           "load_config", "apply_overrides", "config_to_dict", "config_from_dict"]
+__all__ = ["TEXTURED_FAMILIES", "ConfigError", "DataConfig", "ModelConfig", "OptimConfig", "EvalConfig",
+           "CalibrationConfig", "TrainConfig", "load_config", "apply_overrides", "config_to_dict", "config_from_dict"]
 
 
 class ConfigError(InputError):
@@ -122,6 +123,28 @@ class OptimConfig:
     normaliser_batches: int = 4
 
 
+@dataclass
+class CalibrationConfig:
+    """The run's last stage: calibrating the predicted error scale (:mod:`training.calibrate_scale`).
+
+    Attributes:
+        enabled: fit the calibration after training (before the final evaluation) and save
+            the model with it.
+        planes: textured planes (256x256) of the calibration scenes.
+        scenes: scenes per depth-structure layout (480x640).
+        bins: equal-count bands of the predicted scale (knots).
+        smooth: odd moving-average width over the bands' factors.
+        min_factor: smallest factor ``b' / b`` at a knot (1: only widen); 0 = no bound.
+    """
+
+    enabled: bool = False
+    planes: int = 2048
+    scenes: int = 64
+    bins: int = 40
+    smooth: int = 3
+    min_factor: float = 0.0
+
+
 #: Textured texture families (every registered family but the near-uniform ``gradient`` and ``flat``).
 TEXTURED_FAMILIES = ["fractal", "bandlimited", "voronoi", "dead_leaves", "stripes", "checkers", "dots", "line_art",
                      "glyphs"]
@@ -173,6 +196,7 @@ class TrainConfig:
         ckpt_every: steps between checkpoints (the last step always writes one).
         max_minutes: stop early (with a checkpoint) after this wall time; 0 = no limit.
         final_eval: write the evaluation report at the end.
+        calibration: the predicted error scale's calibration after training (:class:`CalibrationConfig`).
     """
 
     out_dir: str = "runs/default"
@@ -188,6 +212,7 @@ class TrainConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
 
 # ----------------------------------------------------------------------------- parsing
@@ -379,6 +404,11 @@ def validate_config(cfg: TrainConfig) -> None:
          "eval.bins and eval.samples must be >= 1, eval.textureless_samples >= 0"),
         (cfg.model.confidence_scale > 0 and cfg.model.correction_scale > 0, "model scales must be > 0"),
         (0.0 <= cfg.model.psf_family_told_share <= 1.0, "model.psf_family_told_share must be in [0, 1]"),
+        (cfg.calibration.planes >= 1 and cfg.calibration.scenes >= 1, "calibration.planes and scenes must be >= 1"),
+        (cfg.calibration.bins >= 2, "calibration.bins must be >= 2"),
+        (cfg.calibration.smooth >= 1 and cfg.calibration.smooth % 2 == 1, "calibration.smooth must be an odd width >= 1"),
+        (math.isfinite(cfg.calibration.min_factor) and cfg.calibration.min_factor >= 0,
+         "calibration.min_factor must be >= 0 (0: no bound)"),
     ]
     for ok, msg in checks:
         if not ok:

@@ -24,6 +24,7 @@ from torch import nn
 from tdfd.atomic_io import atomic_writer, remove_orphans
 from tdfd.model import DFDModel
 
+from .calibrate_scale import calibrate_model
 from .config import ConfigError, TrainConfig, config_to_dict
 from .data import Featurizer, FeatureSet, StepBatches, build_model, featurize_dataset, fetch_batch, make_dataset
 from .losses import depth_relative_error, laplace_nll, refinement_loss
@@ -364,9 +365,15 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
         return summary
     if dist.is_main:
         model.cpu().eval()
-        model.save(out / "model", extra={"training": summary, "config": config_to_dict(cfg)})
+        extra = {"training": summary, "config": config_to_dict(cfg)}
+        model.save(out / "model", extra=extra)
         summary["model"] = str(out / "model.safetensors")
         logger.info("trained %d steps in %.1f s; model written to %s", step, wall, out / "model.safetensors")
+        if cfg.calibration.enabled:  # the last stage: the predicted error scale (before the report, which scores it)
+            c = cfg.calibration
+            extra["scale_calibration_fit"] = calibrate_model(model, c.planes, c.scenes, c.bins, c.smooth,
+                                                             c.min_factor or None)
+            model.save(out / "model", extra=extra)
         if cfg.final_eval:
             from .evaluate import evaluate_planes, write_report
 
