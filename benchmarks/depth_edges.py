@@ -2,7 +2,8 @@
 
 A tile of the grid whose footprint straddles a depth discontinuity has no single true depth
 (its two surfaces blur differently), so the structure benchmark reports the tiles within
-``reach`` tiles of an occlusion edge apart from the others.
+``reach`` tiles of an occlusion edge apart from the others. Away from edges, a tile of a
+slanted or curved surface still spans a range of depths (:func:`tile_depth_spread`).
 
 A *discontinuity* is a step between two neighbouring pixels (along a row or a column) in
 inverse depth ``q = 1/d``: relatively larger than ``jump`` and at least ``ratio`` times the
@@ -19,7 +20,7 @@ import torch.nn.functional as F
 
 from tdfd.errors import InputError
 
-__all__ = ["depth_discontinuities", "edge_tiles", "EDGE_JUMP", "EDGE_RATIO"]
+__all__ = ["depth_discontinuities", "edge_tiles", "tile_depth_spread", "EDGE_JUMP", "EDGE_RATIO"]
 
 #: smallest relative step of inverse depth between neighbouring pixels that counts as an edge
 EDGE_JUMP = 0.01
@@ -105,3 +106,36 @@ def edge_tiles(depth_m: torch.Tensor, tile: int, stride: int, reach: int = 1, ju
     if reach:
         own = F.max_pool2d(own, 2 * reach + 1, 1, reach)
     return own[0, 0] > 0
+
+
+def tile_depth_spread(depth_m: torch.Tensor, tile: int, stride: int) -> torch.Tensor:
+    """How much the inverse depth varies over each tile: ``(max q - min q) / q_tile``.
+
+    ``q = 1/d``; ``q_tile`` is the tile's mean inverse depth (:func:`tdfd.grid.tile_true_depth`
+    unweighted). 0 for a fronto-parallel face; a slanted tile's blur changes across it by this
+    fraction of its mean.
+
+    Args:
+        depth_m: ``(H, W)`` true depth (m), finite and positive.
+        tile, stride: the tile grid (px).
+
+    Returns:
+        ``(h, w)`` float64 relative spread per tile.
+
+    Raises:
+        InputError: a depth map that is not 2-D, finite and positive, or smaller than a tile.
+
+    Example:
+        >>> q = torch.linspace(2.0, 3.0, 128, dtype=torch.float64).expand(64, 128)  # a ramp in 1/d
+        >>> tile_depth_spread(1.0 / q, 64, 64)  # each half spans 0.496 1/m, means 2.248 and 2.752 1/m
+        tensor([[0.2207, 0.1803]], dtype=torch.float64)
+    """
+    d = torch.as_tensor(depth_m, dtype=torch.float64)
+    if d.dim() != 2 or not bool(torch.isfinite(d).all()) or bool((d <= 0).any()):
+        raise InputError("depth_m must be a finite, positive (H, W) map")
+    if min(d.shape) < tile:
+        raise InputError(f"depth map {tuple(d.shape)} is smaller than a {tile}-px tile")
+    q = (1.0 / d)[None, None]
+    q_max = F.max_pool2d(q, tile, stride)
+    q_min = -F.max_pool2d(-q, tile, stride)
+    return ((q_max - q_min) / F.avg_pool2d(q, tile, stride))[0, 0]

@@ -10,7 +10,7 @@ import torch
 
 from benchmarks.bench_bound import plane_fisher, tile_fisher
 from benchmarks.bench_onnx import latency_ratio
-from benchmarks.depth_edges import depth_discontinuities, edge_tiles
+from benchmarks.depth_edges import depth_discontinuities, edge_tiles, tile_depth_spread
 from benchmarks.depth_models import predicted_scale
 from benchmarks.uncertainty import decile_table, laplace_mixture_median, scene_bootstrap
 from tdfd import Camera
@@ -249,3 +249,18 @@ def test_scene_bootstrap_counts_scenes_not_tiles():
         scene_bootstrap(conf, b, e, torch.zeros(scenes * per), bins=5)
     with pytest.raises(InputError, match="one value per tile"):
         scene_bootstrap(conf, b, e, torch.zeros(3), bins=5)
+
+
+def test_tile_depth_spread_zero_on_a_plane_and_exact_on_a_ramp():
+    plane = torch.full((96, 160), 0.5, dtype=torch.float64)
+    assert torch.equal(tile_depth_spread(plane, 64, 32), torch.zeros(2, 4, dtype=torch.float64))
+    q = torch.linspace(1.0, 4.0, 160, dtype=torch.float64).expand(96, 160)  # inverse depth rises along the rows
+    sp = tile_depth_spread(1.0 / q, 64, 32)
+    step = 3.0 / 159
+    first = 63 * step / (1.0 + 31.5 * step)  # range / mean of the first tile's columns
+    assert sp.shape == (2, 4) and float(sp[0, 0]) == pytest.approx(first, rel=1e-12)
+    assert bool((sp[:, 1:] < sp[:, :-1]).all())  # the same range over larger means
+    with pytest.raises(InputError, match="positive"):
+        tile_depth_spread(torch.zeros(96, 160), 64, 32)
+    with pytest.raises(InputError, match="smaller"):
+        tile_depth_spread(plane[:32], 64, 32)
