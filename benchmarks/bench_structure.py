@@ -45,15 +45,13 @@ from benchmarks.depth_models import DepthModel, load_depth_model
 from benchmarks.report import ROOT, markdown_table, update_section, with_model_option
 from data_synth import DefocusPairDataset
 from data_synth.params import SynthConfig
-from training.config import TEXTURED_FAMILIES
+from training.data import STRUCTURE_LAYOUTS, textured_scenes
 
-__all__ = ["STRUCTURE_SEED", "STRUCTURE_LAYOUTS", "structure_dataset", "collect_structure", "summarise_structure",
+__all__ = ["STRUCTURE_SEED", "structure_dataset", "collect_structure", "summarise_structure",
            "main"]
 
 #: seed of the structure scenes (no training run or other benchmark uses it)
 STRUCTURE_SEED = 53_000_017
-#: data_synth depth layouts with depth structure, one table row each
-STRUCTURE_LAYOUTS = ("slanted", "layout", "smooth")
 #: the target's confidence threshold
 CONF = 0.5
 
@@ -61,9 +59,7 @@ CONF = 0.5
 def structure_dataset(model: DepthModel, layout: str, size: tuple[int, int], seed: int = STRUCTURE_SEED,
                       return_sharp: bool = False) -> DefocusPairDataset:
     """The benchmark's scenes of one ``layout`` on the model's camera and tile grid."""
-    return DefocusPairDataset(size=size, camera=model.camera, seed=seed, tile=model.tile, stride=model.stride,
-                              layouts={layout: 1.0}, families=TEXTURED_FAMILIES, illumination_prob=0.0,
-                              return_sharp=return_sharp)
+    return textured_scenes(model.camera, model.tile, model.stride, layout, size, seed, return_sharp=return_sharp)
 
 
 def collect_structure(model: DepthModel, layout: str, scenes: int, size: tuple[int, int], seed: int = STRUCTURE_SEED,

@@ -34,7 +34,7 @@ import torch
 from tqdm import tqdm
 
 from benchmarks.bench_refinement import BENCH_SEED
-from benchmarks.bench_structure import STRUCTURE_LAYOUTS, STRUCTURE_SEED, collect_structure
+from benchmarks.bench_structure import STRUCTURE_SEED, collect_structure
 from benchmarks.depth_models import DepthModel, load_depth_model, predicted_scale
 from benchmarks.report import ROOT, markdown_table, update_section, with_model_option
 from benchmarks.uncertainty import CALIBRATION_TOLERANCE, decile_table, plot_calibration, scene_bootstrap
@@ -42,7 +42,7 @@ from tdfd.model import DFDModel
 from training.calibrate_scale import PLANE_SEED
 from training.calibrate_scale import STRUCTURE_SEED as CAL_STRUCTURE_SEED
 from training.config import DataConfig, EvalConfig, ModelConfig
-from training.data import fetch_batch, make_dataset
+from training.data import STRUCTURE_LAYOUTS, fetch_batch, make_dataset
 
 __all__ = ["plane_tiles", "structure_tiles", "calibration", "main"]
 

@@ -65,9 +65,9 @@ def load_depth_model(path: str | Path, threads: int = 2, calibrated: bool = True
             calibration is part of its graph).
     """
     p = Path(path)
-    if p.suffix == ".onnx" and not calibrated:
-        raise ModelError(f"{p}: an ONNX file's scale calibration is part of its graph; load the safetensors stem")
     if p.suffix == ".onnx":
+        if not calibrated:
+            raise ModelError(f"{p}: an ONNX file's scale calibration is part of its graph; load the safetensors stem")
         from tdfd.runtime import DepthRuntime
 
         rt = DepthRuntime(p, threads=threads)

@@ -41,27 +41,23 @@ from data_synth import DefocusPairDataset
 from tdfd.model import DFDModel
 from tdfd.model.scale_calibration import ScaleCalibration, fit_scale_calibration
 
-from .config import TEXTURED_FAMILIES
+from .data import STRUCTURE_LAYOUTS, textured_scenes
 
-__all__ = ["PLANE_SEED", "STRUCTURE_SEED", "STRUCTURE_LAYOUTS", "collect_scale_errors", "calibrate_model", "main"]
+__all__ = ["PLANE_SEED", "STRUCTURE_SEED", "collect_scale_errors", "calibrate_model", "main"]
 
 logger = logging.getLogger("training.calibrate_scale")
 
 #: seeds of the calibration scenes (no training run or benchmark uses them)
 PLANE_SEED = 91_000_001
 STRUCTURE_SEED = 92_000_003
-STRUCTURE_LAYOUTS = ("slanted", "layout", "smooth")
 
 
 def _scene_sets(model: DFDModel, planes: int, scenes: int, plane_size: int, structure_size: tuple[int, int]
                 ) -> list[tuple[str, DefocusPairDataset, int, int]]:
-    common = {"camera": model.camera, "tile": model.tile, "stride": model.stride, "families": list(TEXTURED_FAMILIES),
-              "illumination_prob": 0.0}
-    sets = [("planes", DefocusPairDataset(size=(plane_size, plane_size), seed=PLANE_SEED, layouts={"plane": 1.0},
-                                          **common), planes, 16)]
+    grid = (model.camera, model.tile, model.stride)
+    sets = [("planes", textured_scenes(*grid, "plane", (plane_size, plane_size), PLANE_SEED), planes, 16)]
     for layout in STRUCTURE_LAYOUTS:
-        sets.append((layout, DefocusPairDataset(size=structure_size, seed=STRUCTURE_SEED, layouts={layout: 1.0},
-                                                **common), scenes, 4))
+        sets.append((layout, textured_scenes(*grid, layout, structure_size, STRUCTURE_SEED), scenes, 4))
     return sets
 
 

@@ -19,13 +19,18 @@ from typing import Any, Callable
 
 import torch
 
+from data_synth import DefocusPairDataset
+from tdfd.camera import Camera
 from tdfd.camera_file import resolve_camera
 from tdfd.model import DFDModel, training_codes
 
-from .config import ConfigError, DataConfig, ModelConfig
+from .config import TEXTURED_FAMILIES, ConfigError, DataConfig, ModelConfig
 
 __all__ = ["import_object", "make_dataset", "build_model", "Featurizer", "StepBatches", "FeatureSet",
-           "featurize_dataset", "fetch_batch"]
+           "featurize_dataset", "fetch_batch", "STRUCTURE_LAYOUTS", "textured_scenes"]
+
+#: data_synth depth layouts with depth structure (the structure benchmark's and the scale calibration's)
+STRUCTURE_LAYOUTS = ("slanted", "layout", "smooth")
 
 logger = logging.getLogger(__name__)
 
@@ -40,6 +45,15 @@ def import_object(spec: str) -> Any:
     except (ImportError, AttributeError) as exc:
         raise ConfigError(f"cannot import {spec!r}: {exc}") from exc
     return obj
+
+
+def textured_scenes(camera: Camera, tile: int, stride: int, layout: str, size: tuple[int, int], seed: int,
+                    **options: Any) -> DefocusPairDataset:
+    """Held-out scenes of one ``data_synth`` layout: every textured family, no assist light,
+    on ``camera`` and the ``tile``/``stride`` grid; ``options`` go to the dataset (e.g.
+    ``return_sharp``)."""
+    return DefocusPairDataset(size=size, camera=camera, seed=seed, tile=tile, stride=stride, layouts={layout: 1.0},
+                              families=list(TEXTURED_FAMILIES), illumination_prob=0.0, **options)
 
 
 def build_model(mcfg: ModelConfig) -> DFDModel:

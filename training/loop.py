@@ -369,6 +369,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
         model.save(out / "model", extra=extra)
         summary["model"] = str(out / "model.safetensors")
         logger.info("trained %d steps in %.1f s; model written to %s", step, wall, out / "model.safetensors")
+        # saved before the calibration too: a failing last stage must not lose the trained CNN
         if cfg.calibration.enabled:  # the last stage: the predicted error scale (before the report, which scores it)
             c = cfg.calibration
             extra["scale_calibration_fit"] = calibrate_model(model, c.planes, c.scenes, c.bins, c.smooth,
