@@ -203,8 +203,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{h}x{w} new / baseline: median {r['median']:.3f}, paired {r['paired']:.3f}, p10 {r['p10']:.3f}")
     loads.append(os.getloadavg()[0])
     table = markdown_table(["image", "backend", "median ms", "p10 ms", "min ms", "target ms (median)", "calls"], rows)
-    def shown(path: Path) -> str:
-        return str(path.relative_to(ROOT) if path.is_relative_to(ROOT) else path.name)
+    def shown(path: Path) -> str:  # a path given relative to the working directory counts as in the repository too
+        full = Path(path).resolve()
+        return str(full.relative_to(ROOT.resolve()) if full.is_relative_to(ROOT.resolve()) else full.name)
 
     body = (f"Exported model `{shown(onnx_path)}` "
             f"(weights: {source}); one DFD pair per call (batch 1), rendered frames. ONNX Runtime "

@@ -28,6 +28,7 @@ from benchmarks.bench_structure import collect_structure
 from benchmarks.bench_uncertainty import plane_tiles
 from benchmarks.depth_models import DepthModel, load_depth_model
 from benchmarks.report import markdown_table
+from benchmarks.uncertainty import resample_scenes
 from training.data import STRUCTURE_LAYOUTS
 
 __all__ = ["paired_tile_median", "paired_group_median", "compare"]
@@ -41,11 +42,6 @@ def _check(err_a: torch.Tensor, err_b: torch.Tensor, group: torch.Tensor) -> Non
                          f"{tuple(err_b.shape)}, {tuple(group.shape)}")
     if err_a.numel() == 0:
         raise ValueError("no tiles to compare")
-
-
-def _resample(groups: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-    """Indices into ``groups`` (sorted unique ids) of one bootstrap resample, with repeats."""
-    return torch.randint(len(groups), (len(groups),), generator=generator)
 
 
 def _summary(a: float, b: float, diffs: torch.Tensor) -> dict[str, float]:
@@ -79,12 +75,7 @@ def paired_tile_median(err_a: torch.Tensor, err_b: torch.Tensor, group: torch.Te
     """
     _check(err_a, err_b, group)
     gen = generator if generator is not None else torch.Generator().manual_seed(0)
-    ids, inverse = torch.unique(group, return_inverse=True)
-    members = [torch.nonzero(inverse == k).flatten() for k in range(len(ids))]
-    diffs = []
-    for _ in range(reps):
-        idx = torch.cat([members[k] for k in _resample(ids, gen).tolist()])
-        diffs.append(float(err_b[idx].median()) - float(err_a[idx].median()))
+    diffs = [float(err_b[idx].median()) - float(err_a[idx].median()) for idx in resample_scenes(group, reps, gen)]
     return _summary(float(err_a.median()), float(err_b.median()), torch.tensor(diffs, dtype=torch.float64))
 
 
@@ -114,10 +105,8 @@ def paired_group_median(depth_a: torch.Tensor, depth_b: torch.Tensor, true: torc
         eb.append(abs(float(depth_b[sel].median()) - t) / t)
     ea_t, eb_t = torch.tensor(ea, dtype=torch.float64), torch.tensor(eb, dtype=torch.float64)
     gen = generator if generator is not None else torch.Generator().manual_seed(0)
-    diffs = []
-    for _ in range(reps):
-        idx = _resample(ids, gen)
-        diffs.append(float(eb_t[idx].median()) - float(ea_t[idx].median()))
+    diffs = [float(eb_t[idx].median()) - float(ea_t[idx].median())
+             for idx in resample_scenes(torch.arange(len(ids)), reps, gen)]  # one value per scene
     return _summary(float(ea_t.median()), float(eb_t.median()), torch.tensor(diffs, dtype=torch.float64))
 
 

@@ -15,6 +15,7 @@ scenes behind it (:func:`scene_bootstrap`).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
@@ -22,7 +23,8 @@ import torch
 from tdfd.errors import InputError
 from tdfd.model.scale_calibration import laplace_mixture_median
 
-__all__ = ["laplace_mixture_median", "decile_table", "scene_bootstrap", "plot_calibration", "CALIBRATION_TOLERANCE"]
+__all__ = ["laplace_mixture_median", "decile_table", "scene_bootstrap", "resample_scenes", "plot_calibration",
+           "CALIBRATION_TOLERANCE"]
 
 #: the target: observed / predicted within 20 % in every decile (issue 19)
 CALIBRATION_TOLERANCE = 0.2
@@ -92,17 +94,31 @@ def scene_bootstrap(confidence: torch.Tensor, scale: torch.Tensor, error: torch.
     sc = torch.as_tensor(scene).flatten()
     if sc.numel() != torch.as_tensor(confidence).numel():
         raise InputError(f"scene must have one value per tile, got {sc.numel()} for {torch.as_tensor(confidence).numel()}")
-    ids, inverse = torch.unique(sc, return_inverse=True)
-    if reps < 2 or ids.numel() < 2:
-        raise InputError(f"need reps >= 2 and at least two scenes, got {reps} and {ids.numel()}")
-    members = [torch.nonzero(inverse == k).flatten() for k in range(ids.numel())]
-    g = torch.Generator().manual_seed(seed)
-    ratios = []
-    for _ in range(reps):
-        pick = torch.randint(ids.numel(), (ids.numel(),), generator=g)
-        idx = torch.cat([members[int(k)] for k in pick])
-        ratios.append([r["ratio"] for r in decile_table(confidence[idx], scale[idx], error[idx], bins)])
+    if reps < 2 or torch.unique(sc).numel() < 2:
+        raise InputError(f"need reps >= 2 and at least two scenes, got {reps} and {torch.unique(sc).numel()}")
+    ratios = [[r["ratio"] for r in decile_table(confidence[idx], scale[idx], error[idx], bins)]
+              for idx in resample_scenes(sc, reps, torch.Generator().manual_seed(seed))]
     return torch.tensor(ratios, dtype=torch.float64).std(0)
+
+
+def resample_scenes(scene: torch.Tensor, reps: int, generator: torch.Generator) -> Iterator[torch.Tensor]:
+    """Bootstrap resamples of whole scenes: ``reps`` times, as many scenes as there are drawn
+    with replacement, each resample the indices of their tiles (a scene drawn twice, twice).
+
+    Args:
+        scene: ``(N,)`` scene identifier per tile.
+        reps: number of resamples.
+        generator: the random source.
+
+    Example:
+        >>> [t.tolist() for t in resample_scenes(torch.tensor([7, 7, 9]), 2, torch.Generator().manual_seed(1))]
+        [[2, 2], [0, 1, 0, 1]]
+    """
+    ids, inverse = torch.unique(torch.as_tensor(scene).flatten(), return_inverse=True)
+    members = [torch.nonzero(inverse == k).flatten() for k in range(ids.numel())]
+    for _ in range(reps):
+        pick = torch.randint(ids.numel(), (ids.numel(),), generator=generator)
+        yield torch.cat([members[int(k)] for k in pick])
 
 
 def plot_calibration(tables: dict[str, list[dict]], path: Path, title: str = "") -> None:
