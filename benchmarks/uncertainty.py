@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from tdfd.errors import InputError
-from tdfd.model.scale_calibration import laplace_mixture_median
+from tdfd.model.scale_calibration_fit import laplace_mixture_median
 
 __all__ = ["laplace_mixture_median", "decile_table", "scene_bootstrap", "resample_scenes", "plot_calibration",
            "CALIBRATION_TOLERANCE"]

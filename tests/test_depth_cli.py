@@ -159,11 +159,16 @@ def _write_pair(tmp_path, f1, f2, name):
 
 
 def test_depth_of_rendered_planes_matches_the_truth(plane_pairs, shipped_onnx, tmp_path, capsys):
-    """12-bit frames in 16-bit PNGs: the printed centre depth and the written map are the plane's."""
+    """12-bit frames in 16-bit PNGs: the printed centre depth and the written map are the plane's.
+
+    The threshold is 0.05, not the default 0.1: the plane at 0.7 m is estimated within 2 %, but
+    the shipped model states a median error near 3 % there (confidence about 0.09; its planes
+    err 3.7 % at 0.6-0.7 m, docs/BENCHMARKS.md), which the default calls unreliable."""
     for k, (f1, f2, truth) in enumerate(plane_pairs):
         a, b = _write_pair(tmp_path, f1, f2, f"plane{k}")
         out = tmp_path / f"plane{k}.npy"
-        rc, stdout, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "-o", out)
+        rc, stdout, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--threshold", "0.05",
+                               "-o", out)
         assert rc == 0, err
         line = next(s for s in stdout.splitlines() if s.startswith("centre depth:"))
         centre = float(line.split()[2])

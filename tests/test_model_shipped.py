@@ -76,3 +76,19 @@ def test_the_right_psf_family_beats_the_wrong_one(model):
             err[family] = float(((depth - t).abs() / t)[keep].median())
     model.set_psf_family(None)
     assert err["gaussian"] < 0.9 * err["pillbox"], err
+
+
+def test_scale_calibration_has_its_three_parts_and_they_act(model):
+    """The shipped confidence comes through the whole calibration (issue 19): the scale, depth
+    and edge parts are in the description, and on one pair a tile's calibrated scale moves
+    with its depth and its place in the grid as the parts say."""
+    cfg = model.scale_calibration.to_config()
+    assert set(cfg) == {"log_b", "log_b_calibrated", "inverse_depth_per_m", "depth_log_shift", "border_log_shift"}
+    assert cfg["border_log_shift"][-1] == 0.0  # the innermost level is the reference
+    fit = DFDModel.read_description(STEM)["extra"]["scale_calibration_fit"]
+    assert fit["depth_bins"] == len(cfg["depth_log_shift"]) and fit["border_levels"] == len(cfg["border_log_shift"])
+    log_b = torch.full((1, 1, 6, 7), -4.0)
+    q = torch.full((1, 1, 6, 7), 2.0)
+    out = model.scale_calibration(log_b, q)
+    edge_minus_inner = float(out[0, 0, 0, 3] - out[0, 0, 2, 3])  # 0 and 2 tiles from the edge
+    assert edge_minus_inner == pytest.approx(cfg["border_log_shift"][0] - cfg["border_log_shift"][2], abs=1e-5)

@@ -10,13 +10,17 @@ are in ``models/README.md``)::
 The CNN's Laplace scale ``b`` of the relative inverse-depth error is trained by the Laplace
 NLL, whose optimum is the *mean* absolute error; the errors are heavier-tailed than a
 Laplace and the held-out scenes differ from the training mix, so the median error per band
-of ``b`` is off by up to half (issue 19). This stage runs the model on scenes that no
-training run or benchmark uses, fits a monotone map of ``log b``
-(:func:`tdfd.model.scale_calibration.fit_scale_calibration`: in each of ``--bins``
-equal-count bands of ``b`` the median ``|e|`` becomes ``b' ln 2``; ``--min-factor 1`` would
-only ever widen the CNN's scale) and writes it into the
-model's JSON description (the weights are unchanged). The scenes, all tiles in the working
-range, the model told the family it is saved with:
+of ``b`` is off by up to half, and at the same ``b`` the error depends on the tile's depth
+and on its distance to the frame's edge by up to 1.4x (issue 19). This stage runs the model
+on scenes that no training run or benchmark uses, fits the map
+``log b' = log b + s(log b) + g(q) + h(n)`` (:mod:`tdfd.model.scale_calibration`;
+:func:`tdfd.model.scale_calibration_fit.fit_tile_calibration`: in each of ``--bins``
+equal-count bands of ``b``, ``--depth-bins`` bands of the refined inverse depth ``q`` and
+``--border-levels`` distances ``n`` to the grid's edge the median ``|e|`` becomes
+``b' ln 2``; ``--depth-bins 0 --border-levels 0`` fits ``s`` alone; ``--min-factor 1``
+would only ever widen the CNN's scale in ``s``) and writes it into the model's JSON
+description (the weights are unchanged). The scenes, all tiles in the working range, the
+model told the family it is saved with:
 
 - textured fronto-parallel planes, 256x256, the training evaluation's textures, no assist
   light (seed :data:`PLANE_SEED`, ``--planes``);
@@ -30,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 import time
 from pathlib import Path
@@ -39,7 +44,8 @@ from tqdm import tqdm
 
 from data_synth import DefocusPairDataset
 from tdfd.model import DFDModel
-from tdfd.model.scale_calibration import ScaleCalibration, fit_scale_calibration
+from tdfd.model.scale_calibration import ScaleCalibration, tile_border_distance
+from tdfd.model.scale_calibration_fit import fit_tile_calibration
 
 from .data import STRUCTURE_LAYOUTS, textured_scenes
 
@@ -68,14 +74,15 @@ def collect_scale_errors(model: DFDModel, planes: int = 2048, scenes: int = 64, 
 
     Returns:
         ``scale`` (``b``, the CNN's before any calibration), ``error`` (signed relative
-        inverse-depth error) and ``set`` (0 planes, 1.. the structure layouts), ``(N,)``
+        inverse-depth error), ``inverse_depth`` (the refined ``q``, 1/m), ``border`` (tiles
+        to the grid's edge) and ``set`` (0 planes, 1.. the structure layouts), ``(N,)``
         float64 each, over the tiles whose true depth is in the working range.
     """
     saved = model.scale_calibration
     model.scale_calibration = ScaleCalibration()  # the CNN's own scale
     model.eval()
     near, far = model.camera.depth_range_m
-    out: dict[str, list[torch.Tensor]] = {"scale": [], "error": [], "set": []}
+    out: dict[str, list[torch.Tensor]] = {"scale": [], "error": [], "inverse_depth": [], "border": [], "set": []}
     try:
         for k, (name, ds, count, chunk) in enumerate(_scene_sets(model, planes, scenes, plane_size, structure_size)):
             for start in tqdm(range(0, count, chunk), desc=name, mininterval=10.0):
@@ -86,6 +93,8 @@ def collect_scale_errors(model: DFDModel, planes: int = 2048, scenes: int = 64, 
                 q, q_true = r.inverse_depth.double()[keep], 1.0 / true[keep]
                 out["scale"].append(r.log_scale.double()[keep].exp())
                 out["error"].append((q - q_true) / q_true)
+                out["inverse_depth"].append(q)
+                out["border"].append(tile_border_distance(true).expand_as(true)[keep])
                 out["set"].append(torch.full((int(keep.sum()),), float(k), dtype=torch.float64))
     finally:
         model.scale_calibration = saved
@@ -93,29 +102,38 @@ def collect_scale_errors(model: DFDModel, planes: int = 2048, scenes: int = 64, 
 
 
 def calibrate_model(model: DFDModel, planes: int = 2048, scenes: int = 64, bins: int = 40, smooth: int = 3,
-                    min_factor: float | None = None) -> dict[str, object]:
+                    min_factor: float | None = None, depth_bins: int = 20, border_levels: int = 5) -> dict[str, object]:
     """Fit and set ``model.scale_calibration`` (:func:`collect_scale_errors`, then
-    :func:`~tdfd.model.scale_calibration.fit_scale_calibration`).
+    :func:`~tdfd.model.scale_calibration_fit.fit_tile_calibration`; ``depth_bins`` or
+    ``border_levels`` 0: without that part).
 
     Returns:
-        What the fit used and found: seeds, counts, knots, and per knot the factor ``b' / b``.
+        What the fit used and found: seeds, counts, and per knot the factor ``b' / b`` of each part.
     """
     t0 = time.perf_counter()
     data = collect_scale_errors(model, planes, scenes)
-    knots_b, knots_c = fit_scale_calibration(data["scale"], data["error"], bins=bins, smooth=smooth,
-                                             min_factor=min_factor)
-    model.scale_calibration = ScaleCalibration(knots_b.tolist(), knots_c.tolist())
-    factors = (knots_c - knots_b).exp()
-    info = {"plane_seed": PLANE_SEED, "structure_seed": STRUCTURE_SEED, "planes": planes, "scenes_per_layout": scenes,
-            "layouts": list(STRUCTURE_LAYOUTS), "tiles": int(data["scale"].numel()),
-            "plane_tiles": int((data["set"] == 0).sum()), "bins": bins, "smooth": smooth, "min_factor": min_factor,
-            "knot_scales": [round(float(v), 6) for v in knots_b.exp()],
-            "knot_factors": [round(float(v), 4) for v in factors], "seconds": round(time.perf_counter() - t0, 1)}
+    cfg = fit_tile_calibration(data["scale"], data["error"], data["inverse_depth"] if depth_bins else None,
+                               data["border"] if border_levels else None, bins=bins, smooth=smooth,
+                               depth_bins=depth_bins, border_levels=border_levels, min_factor=min_factor)
+    model.scale_calibration = ScaleCalibration.from_config(cfg)
+    factors = [round(math.exp(c - b), 4) for b, c in zip(cfg["log_b"], cfg["log_b_calibrated"])]
+    info: dict[str, object] = {
+        "plane_seed": PLANE_SEED, "structure_seed": STRUCTURE_SEED, "planes": planes, "scenes_per_layout": scenes,
+        "layouts": list(STRUCTURE_LAYOUTS), "tiles": int(data["scale"].numel()),
+        "plane_tiles": int((data["set"] == 0).sum()), "bins": bins, "smooth": smooth, "min_factor": min_factor,
+        "depth_bins": depth_bins, "border_levels": border_levels,
+        "knot_scales": [round(math.exp(v), 6) for v in cfg["log_b"]], "knot_factors": factors}
     logger.info("scale calibration on %d tiles (%d planes, %d scenes per layout): factor b'/b %.2f .. %.2f at the "
-                "knots, %.0f s", info["tiles"], planes, scenes, float(factors.min()), float(factors.max()),
-                info["seconds"])
-    for b, f in zip(info["knot_scales"], info["knot_factors"]):  # type: ignore[call-overload]
-        logger.info("  b %.5f -> x %.3f", b, f)
+                "scale knots", info["tiles"], planes, scenes, min(factors), max(factors))
+    if "depth_log_shift" in cfg:
+        info["depth_knots_m"] = [round(1.0 / v, 4) for v in cfg["inverse_depth_per_m"]]
+        info["depth_factors"] = [round(math.exp(v), 4) for v in cfg["depth_log_shift"]]
+        logger.info("  depth factors %s at %s m", info["depth_factors"], info["depth_knots_m"])
+    if "border_log_shift" in cfg:
+        info["border_factors"] = [round(math.exp(v), 4) for v in cfg["border_log_shift"]]
+        logger.info("  factors 0, 1, .. tiles from the edge %s", info["border_factors"])
+    info["seconds"] = round(time.perf_counter() - t0, 1)
+    logger.info("fitted in %.0f s", info["seconds"])
     return info
 
 
@@ -127,6 +145,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scenes", type=int, default=64, help="scenes per depth-structure layout (480x640)")
     p.add_argument("--bins", type=int, default=40, help="equal-count bands of the predicted scale (knots)")
     p.add_argument("--smooth", type=int, default=3, help="odd moving-average width over the bands' factors")
+    p.add_argument("--depth-bins", type=int, default=20, help="bands of the refined inverse depth (0: no depth part)")
+    p.add_argument("--border-levels", type=int, default=5,
+                   help="distances to the grid's edge with their own factor, the last held beyond (0: no edge part)")
     p.add_argument("--min-factor", default="none",
                    help="smallest factor b'/b at a knot (1: only widen the CNN's scale); default 'none': no bound")
     p.add_argument("--threads", type=int, default=2, help="torch threads")
@@ -134,6 +155,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stdout)
     if args.planes < 1 or args.scenes < 1:
         p.error("--planes and --scenes must be >= 1")
+    if args.depth_bins in (1,) or args.depth_bins < 0 or args.border_levels in (1,) or args.border_levels < 0:
+        p.error("--depth-bins and --border-levels must be 0 (without that part) or >= 2")
     try:
         min_factor = None if args.min_factor.lower() == "none" else float(args.min_factor)
     except ValueError:
@@ -141,7 +164,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     model = DFDModel.load(args.model)
     meta = DFDModel.read_description(args.model)
-    info = calibrate_model(model, args.planes, args.scenes, args.bins, args.smooth, min_factor)
+    info = calibrate_model(model, args.planes, args.scenes, args.bins, args.smooth, min_factor, args.depth_bins,
+                           args.border_levels)
     extra = dict(meta.get("extra") or {})
     extra["scale_calibration_fit"] = info
     out = Path(args.out or args.model)

@@ -134,7 +134,9 @@ class CalibrationConfig:
         scenes: scenes per depth-structure layout (480x640).
         bins: equal-count bands of the predicted scale (knots).
         smooth: odd moving-average width over the bands' factors.
-        min_factor: smallest factor ``b' / b`` at a knot (1: only widen); 0 = no bound.
+        min_factor: smallest factor ``b' / b`` at a knot of the scale part (1: only widen); 0 = no bound.
+        depth_bins: bands of the refined inverse depth (the depth part's knots); 0 = no depth part.
+        border_levels: distances to the grid's edge with their own factor; 0 = no edge part.
     """
 
     enabled: bool = False
@@ -143,6 +145,8 @@ class CalibrationConfig:
     bins: int = 40
     smooth: int = 3
     min_factor: float = 0.0
+    depth_bins: int = 20
+    border_levels: int = 5
 
 
 #: Textured texture families (every registered family but the near-uniform ``gradient`` and ``flat``).
@@ -409,6 +413,10 @@ def validate_config(cfg: TrainConfig) -> None:
         (cfg.calibration.smooth >= 1 and cfg.calibration.smooth % 2 == 1, "calibration.smooth must be an odd width >= 1"),
         (math.isfinite(cfg.calibration.min_factor) and cfg.calibration.min_factor >= 0,
          "calibration.min_factor must be >= 0 (0: no bound)"),
+        (cfg.calibration.depth_bins == 0 or cfg.calibration.depth_bins >= 2,
+         "calibration.depth_bins must be 0 (no depth part) or >= 2"),
+        (cfg.calibration.border_levels == 0 or cfg.calibration.border_levels >= 2,
+         "calibration.border_levels must be 0 (no edge part) or >= 2"),
     ]
     for ok, msg in checks:
         if not ok:

@@ -14,10 +14,11 @@ per-tile intermediates into features (:func:`tile_features`), and lets a small C
   expects to be large gets a small confidence.
 
 Training minimises the Laplace negative log-likelihood ``|e| / b + log b`` (see
-:mod:`training`); after training, a monotone map of ``log b`` fitted on held-out scenes
-(:class:`~tdfd.model.scale_calibration.ScaleCalibration`, :mod:`training.calibrate_scale`)
-makes the median error in every band of ``b`` its Laplace median ``b ln 2`` (issue 19). The
-confidence is computed from the calibrated ``b``.
+:mod:`training`); after training, a map of ``log b``, the refined inverse depth and the
+tile's distance to the grid's edge, fitted on held-out scenes
+(:class:`~tdfd.model.scale_calibration.ScaleCalibration`, :mod:`training.calibrate_scale`),
+makes the median error in every band of ``b``, of depth and of that distance its Laplace
+median ``b ln 2`` (issue 19). The confidence is computed from the calibrated ``b``.
 
 With the refinement head at zero (a fresh model) ``depth`` equals ``depth_analytic``
 exactly. The forward pass has no data-dependent Python control flow and no ``torch.fft``,
@@ -232,9 +233,10 @@ class DFDModel(nn.Module):
         psf_family: the family the model is told at inference (``"gaussian"``,
             ``"pillbox"``; ``None``: unknown), e.g. the camera file's measured ``psf_family``
             (:meth:`set_psf_family`). Only with ``psf_family_input``.
-        scale_calibration: knots ``{"log_b": [...], "log_b_calibrated": [...]}`` of the
-            post-hoc map of the predicted log scale
-            (:class:`~tdfd.model.scale_calibration.ScaleCalibration`); ``None``: identity.
+        scale_calibration: knots of the post-hoc map of the predicted log scale
+            (:meth:`~tdfd.model.scale_calibration.ScaleCalibration.to_config`: ``log_b``,
+            ``log_b_calibrated`` and optionally ``inverse_depth_per_m``, ``depth_log_shift``,
+            ``border_log_shift``); ``None``: identity.
         **refine_config: keyword arguments of :class:`~tdfd.model.refine.RefineNet`
             (``hidden``, ``blocks``, ``kernel_size``).
 
@@ -411,7 +413,7 @@ class DFDModel(nn.Module):
         q_a = inverse_depth.to(wdt).clamp(q_lo, q_hi)
         q = (q_a + self.correction_scale * out[:, 0:1]).clamp(q_lo, q_hi)
         base = torch.log(rel_error.to(wdt).clamp_min(1e-6)).clamp(*_LOG_REL_BOUNDS)
-        log_scale = self.scale_calibration((base + out[:, 1:2]).clamp(*_LOG_SCALE_BOUNDS)).clamp(*_LOG_SCALE_BOUNDS)
+        log_scale = self.scale_calibration((base + out[:, 1:2]).clamp(*_LOG_SCALE_BOUNDS), q).clamp(*_LOG_SCALE_BOUNDS)
         ratio = torch.exp(log_scale) / self.confidence_scale
         return q, log_scale, 1.0 / (1.0 + ratio * ratio), q_a
 

@@ -1,18 +1,37 @@
-"""Post-hoc calibration of the predicted error scale: a monotone map of ``log b``.
+"""Post-hoc calibration of the predicted error scale: a map of ``log b``, the tile's depth and its place in the frame.
 
 The refinement CNN predicts, per tile, a Laplace scale ``b`` of the relative inverse-depth
 error ``e = (q - q_true) / q_true`` (:mod:`tdfd.model.combined`), trained by the Laplace
 negative log-likelihood. On held-out scenes that scale is off by up to half at the
-extremes (issue 19: the most confident tenth of the textured planes errs 1.56 times the
-predicted median). A calibration moves ``log b`` by a piecewise-linear, non-decreasing
-function of itself, fitted after training on scenes no training run or benchmark uses
-(:mod:`training.calibrate_scale`) so that in every band of ``b`` the median ``|e|`` is
-the Laplace median ``b' ln 2``. The map keeps the order of the tiles' confidences; a model
-without one (``knots None``) is the identity.
+extremes (issue 19: the most confident tenth of the textured planes erred 1.56 times the
+predicted median), and by up to 1.4x depending on where the tile is:
 
-The map is ``log b' = log b + s(log b)`` with ``s`` linear between knots ``(x_k, y_k - x_k)``
-and held constant beyond the end knots. In the graph it is a sum of clamped hinges (no
-index lookup), so the ONNX export carries it as a few element-wise operators.
+* its **depth**: at the same ``b``, tiles near the far end of the working range err more
+  than predicted and tiles in the middle less (the defocus difference's sensitivity to
+  depth, eqs. 4-6 of the paper, varies across the range in a way the CNN's scale follows
+  only in part);
+* its **distance to the frame's edge**: the CNN's convolutions over the tile grid pad by
+  replicating the edge (:mod:`tdfd.model.refine`), so a tile at the edge sees its own
+  measurement repeated as context and is more confident than its error warrants.
+
+The calibration is
+
+``log b' = log b + s(log b) + g(q) + h(n)``
+
+with ``q`` the refined inverse depth (1/m), ``n`` the tile's distance in tiles to the
+nearest edge of the grid it was computed on (a crop's own edge for a window), and ``s``,
+``g``, ``h`` piecewise linear between knots and held constant beyond the end knots: ``s``
+through knots ``(x_k, y_k - x_k)`` of ``log b``, ``g`` through knots of ``q``, ``h``
+through the integers ``0, 1, .., K - 1``. ``s`` is non-decreasing in the sense that
+``x + s(x)`` is, so at a given depth and place the map keeps the order of the tiles'
+confidences. Each part is optional; without any the map is the identity. It is fitted
+after training on scenes no training run or benchmark uses
+(:mod:`tdfd.model.scale_calibration_fit`, :mod:`training.calibrate_scale`) so that the
+median ``|e|`` is the Laplace median ``b' ln 2`` along each of the three.
+
+In the graph every part is a sum of clamped hinges (no index lookup) and the distance to
+the edge comes from cumulative sums of ones, so the ONNX export carries it as a few
+element-wise operators on any frame size.
 """
 
 from __future__ import annotations
@@ -25,8 +44,21 @@ from torch import nn
 
 from ..errors import InputError
 
-__all__ = ["calibrate_log_scale", "ScaleCalibration", "laplace_mixture_median", "fit_scale_calibration",
-           "validate_knots"]
+__all__ = ["piecewise_linear", "calibrate_log_scale", "tile_border_distance", "validate_knots",
+           "validate_depth_knots", "validate_border_shifts", "ScaleCalibration"]
+
+#: keys of a calibration's JSON description; the first two go together, and so do the next two
+CONFIG_KEYS = ("log_b", "log_b_calibrated", "inverse_depth_per_m", "depth_log_shift", "border_log_shift")
+
+
+def _floats(values: Sequence[float], what: str) -> list[float]:
+    try:
+        out = [float(v) for v in values]
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"scale calibration {what} must be numbers: {exc}") from exc
+    if not all(math.isfinite(v) for v in out):
+        raise InputError(f"scale calibration {what} must be finite")
+    return out
 
 
 def validate_knots(log_b: Sequence[float], log_b_calibrated: Sequence[float]) -> tuple[list[float], list[float]]:
@@ -39,16 +71,10 @@ def validate_knots(log_b: Sequence[float], log_b_calibrated: Sequence[float]) ->
     Raises:
         InputError: naming what is wrong.
     """
-    try:
-        x = [float(v) for v in log_b]
-        y = [float(v) for v in log_b_calibrated]
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"scale calibration knots must be numbers: {exc}") from exc
+    x, y = _floats(log_b, "knots"), _floats(log_b_calibrated, "knots")
     if len(x) != len(y) or len(x) < 2:
         raise InputError(f"scale calibration needs as many log_b as log_b_calibrated knots, at least 2; "
                          f"got {len(x)} and {len(y)}")
-    if not all(math.isfinite(v) for v in x + y):
-        raise InputError("scale calibration knots must be finite")
     if any(b <= a for a, b in zip(x, x[1:])):
         raise InputError("scale calibration knots log_b must be strictly increasing")
     if any(b < a for a, b in zip(y, y[1:])):
@@ -57,9 +83,61 @@ def validate_knots(log_b: Sequence[float], log_b_calibrated: Sequence[float]) ->
     return x, y
 
 
+def validate_depth_knots(inverse_depth: Sequence[float], log_shift: Sequence[float]) -> tuple[list[float], list[float]]:
+    """Check the depth part's knots: as many of each (at least 2), finite, the inverse depths
+    positive and strictly increasing (1/m).
+
+    Raises:
+        InputError: naming what is wrong.
+    """
+    x, y = _floats(inverse_depth, "inverse_depth_per_m"), _floats(log_shift, "depth_log_shift")
+    if len(x) != len(y) or len(x) < 2:
+        raise InputError(f"scale calibration needs as many inverse_depth_per_m as depth_log_shift knots, at least 2; "
+                         f"got {len(x)} and {len(y)}")
+    if x[0] <= 0 or any(b <= a for a, b in zip(x, x[1:])):
+        raise InputError("scale calibration knots inverse_depth_per_m must be positive and strictly increasing")
+    return x, y
+
+
+def validate_border_shifts(log_shift: Sequence[float]) -> list[float]:
+    """Check the edge part: at least 2 finite log shifts, for 0, 1, .. tiles from the edge.
+
+    Raises:
+        InputError: naming what is wrong.
+    """
+    y = _floats(log_shift, "border_log_shift")
+    if len(y) < 2:
+        raise InputError(f"scale calibration border_log_shift needs at least 2 values (0, 1, .. tiles from the edge), "
+                         f"got {len(y)}")
+    return y
+
+
+def piecewise_linear(x: torch.Tensor, knots_x: torch.Tensor, knots_y: torch.Tensor) -> torch.Tensor:
+    """The function through ``(knots_x[k], knots_y[k])``, linear between knots and constant beyond the ends.
+
+    Args:
+        x: any shape.
+        knots_x: ``(K,)`` strictly increasing, ``K >= 2``.
+        knots_y: ``(K,)`` values at the knots.
+
+    Returns:
+        The shape of ``x``; a sum of clamped hinges, so it exports to ONNX as element-wise operators.
+
+    Example:
+        >>> piecewise_linear(torch.tensor([-1.0, 0.5, 3.0]), torch.tensor([0.0, 1.0, 2.0]), torch.tensor([1.0, 3.0, 0.0]))
+        tensor([1., 2., 0.])
+    """
+    kx = knots_x.to(x.dtype)
+    ky = knots_y.to(x.dtype)
+    lo, hi = kx[:-1], kx[1:]
+    slope = (ky[1:] - ky[:-1]) / (hi - lo)
+    inside = torch.minimum(torch.maximum(x.unsqueeze(-1), lo), hi) - lo  # (..., K - 1) against the segments
+    return ky[0] + (inside * slope).sum(-1)
+
+
 def calibrate_log_scale(log_scale: torch.Tensor, knots_log_b: torch.Tensor, knots_log_b_calibrated: torch.Tensor
                         ) -> torch.Tensor:
-    """Map predicted log scales through the calibration's knots.
+    """Map predicted log scales through the scale part's knots: ``log b + s(log b)``.
 
     Args:
         log_scale: ``log b``, any shape (e.g. ``(B, 1, h, w)``), natural log of the relative error scale.
@@ -75,151 +153,121 @@ def calibrate_log_scale(log_scale: torch.Tensor, knots_log_b: torch.Tensor, knot
         >>> calibrate_log_scale(torch.tensor([-6.0, -4.0, -2.0]), x, y)
         tensor([-5.0000, -3.5000, -2.0000])
     """
-    x = knots_log_b.to(log_scale.dtype)
-    shift = knots_log_b_calibrated.to(log_scale.dtype) - x
-    lo, hi = x[:-1], x[1:]
-    slope = (shift[1:] - shift[:-1]) / (hi - lo)
-    flat = log_scale.unsqueeze(-1)  # (..., 1) against the K - 1 segments
-    inside = torch.minimum(torch.maximum(flat, lo), hi) - lo
-    return log_scale + shift[0] + (inside * slope).sum(-1)
+    return log_scale + piecewise_linear(log_scale, knots_log_b, knots_log_b_calibrated.to(knots_log_b.dtype) - knots_log_b)
+
+
+def tile_border_distance(grid: torch.Tensor) -> torch.Tensor:
+    """Each cell's distance, in cells, to the nearest edge of a ``(B, C, h, w)`` grid.
+
+    Built from cumulative sums of ones (no shape arithmetic), so an ONNX graph computes it
+    for any ``h, w``.
+
+    Args:
+        grid: ``(B, C, h, w)``; only its shape, dtype and device are used.
+
+    Returns:
+        ``(1, 1, h, w)`` of ``grid``'s dtype: ``min(i, h - 1 - i, j, w - 1 - j)``.
+
+    Example:
+        >>> tile_border_distance(torch.zeros(1, 1, 3, 4))[0, 0]
+        tensor([[0., 0., 0., 0.],
+                [0., 1., 1., 0.],
+                [0., 0., 0., 0.]])
+    """
+    if grid.dim() != 4:
+        raise InputError(f"grid must be (B, C, h, w), got shape {tuple(grid.shape)}")
+    ones = torch.ones_like(grid[:1, :1])
+    row = ones.cumsum(2)  # 1 .. h down the rows
+    col = ones.cumsum(3)
+    from_top, from_bottom = row - 1, ones.sum(2, keepdim=True) - row
+    from_left, from_right = col - 1, ones.sum(3, keepdim=True) - col
+    return torch.minimum(torch.minimum(from_top, from_bottom), torch.minimum(from_left, from_right))
 
 
 class ScaleCalibration(nn.Module):
-    """:func:`calibrate_log_scale` with its knots as (non-persistent) buffers; identity without knots.
+    """``log b' = log b + s(log b) + g(q) + h(n)`` with its knots as (non-persistent) buffers.
 
     The knots live in the model's JSON description (:meth:`to_config`), not its weights, so a
     calibration never changes the safetensors file and an uncalibrated model loads as before.
+    Each part is optional; with none the module is the identity.
 
     Args:
-        log_b: knot positions, natural log of the predicted scale; ``None`` for the identity.
-        log_b_calibrated: calibrated values at the knots.
+        log_b: knot positions of ``s``, natural log of the predicted scale; ``None``: no ``s``.
+        log_b_calibrated: calibrated values at those knots.
+        inverse_depth_per_m: knot positions of ``g``, refined inverse depth (1/m); ``None``: no ``g``.
+        depth_log_shift: ``g`` at those knots (natural log of a factor on ``b``).
+        border_log_shift: ``h(0), h(1), ..``: the log factor on ``b`` of a tile 0, 1, .. tiles
+            from the grid's edge, the last one held beyond; ``None``: no ``h``.
     """
 
-    def __init__(self, log_b: Sequence[float] | None = None, log_b_calibrated: Sequence[float] | None = None) -> None:
+    def __init__(self, log_b: Sequence[float] | None = None, log_b_calibrated: Sequence[float] | None = None,
+                 inverse_depth_per_m: Sequence[float] | None = None, depth_log_shift: Sequence[float] | None = None,
+                 border_log_shift: Sequence[float] | None = None) -> None:
         super().__init__()
         if (log_b is None) != (log_b_calibrated is None):
             raise InputError("scale calibration needs both log_b and log_b_calibrated, or neither")
-        self.identity = log_b is None
-        x, y = ([0.0, 1.0], [0.0, 1.0]) if log_b is None else validate_knots(log_b, log_b_calibrated)  # type: ignore[arg-type]
-        self.register_buffer("knots_log_b", torch.tensor(x, dtype=torch.float32), persistent=False)
-        self.register_buffer("knots_log_b_calibrated", torch.tensor(y, dtype=torch.float32), persistent=False)
+        if (inverse_depth_per_m is None) != (depth_log_shift is None):
+            raise InputError("scale calibration needs both inverse_depth_per_m and depth_log_shift, or neither")
+        self.has_scale, self.has_depth = log_b is not None, inverse_depth_per_m is not None
+        self.has_border = border_log_shift is not None
+        self.identity = not (self.has_scale or self.has_depth or self.has_border)
+        x, y = validate_knots(log_b, log_b_calibrated) if self.has_scale else ([0.0, 1.0], [0.0, 1.0])  # type: ignore[arg-type]
+        dx, dy = (validate_depth_knots(inverse_depth_per_m, depth_log_shift) if self.has_depth  # type: ignore[arg-type]
+                  else ([1.0, 2.0], [0.0, 0.0]))
+        hy = validate_border_shifts(border_log_shift) if self.has_border else [0.0, 0.0]  # type: ignore[arg-type]
+        for name, values in (("knots_log_b", x), ("knots_log_b_calibrated", y), ("knots_inverse_depth", dx),
+                             ("knots_depth_log_shift", dy), ("knots_border", [float(k) for k in range(len(hy))]),
+                             ("knots_border_log_shift", hy)):
+            self.register_buffer(name, torch.tensor(values, dtype=torch.float32), persistent=False)
 
-    def forward(self, log_scale: torch.Tensor) -> torch.Tensor:
+    def forward(self, log_scale: torch.Tensor, inverse_depth: torch.Tensor | None = None) -> torch.Tensor:
+        """Calibrate ``log b``.
+
+        Args:
+            log_scale: ``(B, 1, h, w)`` predicted ``log b`` on the tile grid.
+            inverse_depth: ``(B, 1, h, w)`` refined inverse depth (1/m); needed when the map has a depth part.
+
+        Returns:
+            ``(B, 1, h, w)`` calibrated ``log b'``.
+
+        Raises:
+            InputError: a depth part and no (or a differently shaped) ``inverse_depth``.
+        """
         if self.identity:
             return log_scale
-        return calibrate_log_scale(log_scale, self.knots_log_b, self.knots_log_b_calibrated)
+        out = calibrate_log_scale(log_scale, self.knots_log_b, self.knots_log_b_calibrated) if self.has_scale \
+            else log_scale
+        if self.has_depth:
+            if inverse_depth is None or inverse_depth.shape != log_scale.shape:
+                raise InputError("this scale calibration has a depth part: pass the inverse depth, shaped as log_scale "
+                                 f"{tuple(log_scale.shape)}")
+            out = out + piecewise_linear(inverse_depth.to(out.dtype), self.knots_inverse_depth,
+                                         self.knots_depth_log_shift)
+        if self.has_border:
+            out = out + piecewise_linear(tile_border_distance(log_scale), self.knots_border, self.knots_border_log_shift)
+        return out
 
     def to_config(self) -> dict[str, list[float]] | None:
-        """``{"log_b": [...], "log_b_calibrated": [...]}``, or ``None`` for the identity."""
+        """The parts present as ``{"log_b", "log_b_calibrated", "inverse_depth_per_m",
+        "depth_log_shift", "border_log_shift"}`` lists; ``None`` for the identity."""
         if self.identity:
             return None
-        return {"log_b": [float(v) for v in self.knots_log_b], "log_b_calibrated":
-                [float(v) for v in self.knots_log_b_calibrated]}
+        cfg: dict[str, list[float]] = {}
+        for present, keys, buffers in ((self.has_scale, CONFIG_KEYS[0:2], ("knots_log_b", "knots_log_b_calibrated")),
+                                       (self.has_depth, CONFIG_KEYS[2:4], ("knots_inverse_depth", "knots_depth_log_shift")),
+                                       (self.has_border, CONFIG_KEYS[4:5], ("knots_border_log_shift",))):
+            if present:
+                for key, buf in zip(keys, buffers):
+                    cfg[key] = [float(v) for v in getattr(self, buf)]
+        return cfg
 
     @classmethod
     def from_config(cls, cfg: dict | None) -> "ScaleCalibration":
-        """Inverse of :meth:`to_config`."""
+        """Inverse of :meth:`to_config` (a description written before the depth and edge parts,
+        with only ``log_b`` and ``log_b_calibrated``, loads as the scale part alone)."""
         if cfg is None:
             return cls()
-        if not isinstance(cfg, dict) or set(cfg) != {"log_b", "log_b_calibrated"}:
-            raise InputError(f"scale calibration must be {{'log_b': [...], 'log_b_calibrated': [...]}}, got {cfg!r}")
-        return cls(cfg["log_b"], cfg["log_b_calibrated"])
-
-
-def laplace_mixture_median(scales: torch.Tensor) -> float:
-    """Median of ``|e|`` over tiles whose errors ``e`` are Laplace with scales ``scales``.
-
-    The ``m`` at which the tiles' mean ``P(|e| <= m) = 1 - exp(-m / b)`` is one half.
-
-    Example:
-        >>> round(laplace_mixture_median(torch.tensor([0.01, 0.01])), 6)  # one Laplace: b ln 2
-        0.006931
-    """
-    b = torch.as_tensor(scales, dtype=torch.float64).flatten()
-    if b.numel() == 0 or not bool((b >= 0).all()) or bool(torch.isnan(b).any()):
-        raise InputError("scales must be a non-empty set of values >= 0")
-    finite = b[torch.isfinite(b)]
-    if finite.numel() * 2 <= b.numel():  # half the tiles or more with no prediction: no finite median
-        return math.inf
-    lo, hi = 0.0, max(float(finite.max()), 1e-300) * 50.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        # b = 0 counts as P = 1 (exact), b = inf as P = 0
-        p = torch.where(b > 0, 1.0 - torch.exp(-mid / b.clamp_min(1e-300)), torch.ones_like(b)).mean()
-        if float(p) < 0.5:
-            lo = mid
-        else:
-            hi = mid
-    return 0.5 * (lo + hi)
-
-
-def fit_scale_calibration(scale: torch.Tensor, error: torch.Tensor, bins: int = 40, smooth: int = 3,
-                          min_factor: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Fit calibration knots that make the predicted scale match observed errors.
-
-    The tiles are split into ``bins`` equal-count bins by ``b``; in each, the factor ``f``
-    that makes the Laplace mixture median of ``f b`` equal the observed median ``|e|``
-    moves the bin's median ``b`` to a knot. The log factors are averaged over ``smooth``
-    neighbouring bins (a moving average, ends held), held at ``min_factor`` or more, then the
-    knots are made non-decreasing.
-
-    ``min_factor`` bounds the factor from below (``1``: only ever widen the CNN's scale, for a
-    user who would rather keep it where its errors are smaller than it predicts). The shipped
-    model's fit has no bound: on the autofocus reliability benchmark (6000 targets, the lens's
-    family unknown and calibrated) the full map, the widening-only one and the CNN's own scale
-    declared 7, 6 and 7 targets out of focus, the same within chance, and only the full map
-    brings every confidence decile of the structure scenes within 20 % (``models/README.md``).
-
-    Args:
-        scale: ``(N,)`` predicted Laplace scale ``b`` (positive, finite).
-        error: ``(N,)`` observed signed relative error (finite).
-        bins: number of equal-count bins (knots), at least 2.
-        smooth: odd moving-average width over the bins' log factors (1: none).
-        min_factor: the smallest factor ``b' / b`` at a knot (> 0); ``None``: no bound.
-
-    Returns:
-        ``(log_b, log_b_calibrated)`` knots, ``(bins,)`` float64 each (:func:`calibrate_log_scale`).
-
-    Raises:
-        InputError: shapes differ, fewer than two tiles per bin, equal bin medians, or a
-            scale that is not positive and finite.
-
-    Example:
-        >>> g = torch.Generator().manual_seed(0)
-        >>> b = torch.rand(20000, generator=g, dtype=torch.float64) * 0.05 + 0.01
-        >>> u = torch.rand(20000, generator=g, dtype=torch.float64) - 0.5
-        >>> e = 2 * b * -u.sign() * torch.log1p(-2 * u.abs())  # Laplace errors of scale 2 b
-        >>> kb, kr = fit_scale_calibration(b, e, bins=10)
-        >>> bool(((kr - kb).exp() - 2).abs().max() < 0.15)  # errors twice the predicted: factor 2
-        True
-    """
-    b = torch.as_tensor(scale, dtype=torch.float64).flatten()
-    e = torch.as_tensor(error, dtype=torch.float64).flatten().abs()
-    if b.numel() != e.numel():
-        raise InputError(f"scale and error must have as many values, got {b.numel()} and {e.numel()}")
-    if bins < 2 or b.numel() < 2 * bins:
-        raise InputError(f"need at least 2 bins and 2 tiles per bin, got {bins} bins for {b.numel()} tiles")
-    if smooth < 1 or smooth % 2 == 0:
-        raise InputError(f"smooth must be an odd width >= 1, got {smooth}")
-    if not bool(((b > 0) & torch.isfinite(b)).all()):
-        raise InputError("scale must be positive and finite")
-    if not bool(torch.isfinite(e).all()):
-        raise InputError("error must be finite")
-    if min_factor is not None and not (math.isfinite(min_factor) and min_factor > 0):
-        raise InputError(f"min_factor must be positive and finite or None, got {min_factor}")
-    order = torch.argsort(b, stable=True)
-    log_b, log_f = [], []
-    for part in torch.tensor_split(order, bins):
-        log_b.append(math.log(float(b[part].median())))
-        log_f.append(math.log(max(float(e[part].median()), 1e-300) / laplace_mixture_median(b[part])))
-    kb = torch.tensor(log_b, dtype=torch.float64)
-    if bool((kb[1:] <= kb[:-1]).any()):
-        raise InputError("bins with equal median scale: fewer bins, or scales that vary")
-    f = torch.tensor(log_f, dtype=torch.float64)
-    if smooth > 1:
-        pad = smooth // 2
-        padded = torch.cat([f[:1].expand(pad), f, f[-1:].expand(pad)])
-        f = padded.unfold(0, smooth, 1).mean(-1)
-    if min_factor is not None:
-        f = f.clamp_min(math.log(min_factor))
-    return kb, torch.cummax(kb + f, 0).values
+        if not isinstance(cfg, dict) or not cfg or not set(cfg) <= set(CONFIG_KEYS):
+            raise InputError(f"scale calibration must be a non-empty dict with keys among {list(CONFIG_KEYS)}, "
+                             f"got {cfg!r}")
+        return cls(**cfg)
