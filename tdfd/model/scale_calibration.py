@@ -61,8 +61,19 @@ def _floats(values: Sequence[float], what: str) -> list[float]:
     return out
 
 
+def _knot_pairs(xs: Sequence[float], ys: Sequence[float], x_name: str, y_name: str) -> tuple[list[float], list[float]]:
+    """Finite numbers, as many ``xs`` as ``ys`` (at least 2), ``xs`` strictly increasing."""
+    x, y = _floats(xs, x_name), _floats(ys, y_name)
+    if len(x) != len(y) or len(x) < 2:
+        raise InputError(f"scale calibration needs as many {x_name} as {y_name} knots, at least 2; "
+                         f"got {len(x)} and {len(y)}")
+    if any(b <= a for a, b in zip(x, x[1:])):
+        raise InputError(f"scale calibration knots {x_name} must be strictly increasing")
+    return x, y
+
+
 def validate_knots(log_b: Sequence[float], log_b_calibrated: Sequence[float]) -> tuple[list[float], list[float]]:
-    """Check calibration knots: as many of each (at least 2), finite, ``log_b`` strictly
+    """Check the scale part's knots: as many of each (at least 2), finite, ``log_b`` strictly
     increasing and ``log_b_calibrated`` non-decreasing (the map must keep the confidence's order).
 
     Returns:
@@ -71,12 +82,7 @@ def validate_knots(log_b: Sequence[float], log_b_calibrated: Sequence[float]) ->
     Raises:
         InputError: naming what is wrong.
     """
-    x, y = _floats(log_b, "knots"), _floats(log_b_calibrated, "knots")
-    if len(x) != len(y) or len(x) < 2:
-        raise InputError(f"scale calibration needs as many log_b as log_b_calibrated knots, at least 2; "
-                         f"got {len(x)} and {len(y)}")
-    if any(b <= a for a, b in zip(x, x[1:])):
-        raise InputError("scale calibration knots log_b must be strictly increasing")
+    x, y = _knot_pairs(log_b, log_b_calibrated, "log_b", "log_b_calibrated")
     if any(b < a for a, b in zip(y, y[1:])):
         raise InputError("scale calibration knots log_b_calibrated must be non-decreasing (the map keeps the "
                          "confidence's order)")
@@ -85,17 +91,14 @@ def validate_knots(log_b: Sequence[float], log_b_calibrated: Sequence[float]) ->
 
 def validate_depth_knots(inverse_depth: Sequence[float], log_shift: Sequence[float]) -> tuple[list[float], list[float]]:
     """Check the depth part's knots: as many of each (at least 2), finite, the inverse depths
-    positive and strictly increasing (1/m).
+    (1/m) positive and strictly increasing.
 
     Raises:
         InputError: naming what is wrong.
     """
-    x, y = _floats(inverse_depth, "inverse_depth_per_m"), _floats(log_shift, "depth_log_shift")
-    if len(x) != len(y) or len(x) < 2:
-        raise InputError(f"scale calibration needs as many inverse_depth_per_m as depth_log_shift knots, at least 2; "
-                         f"got {len(x)} and {len(y)}")
-    if x[0] <= 0 or any(b <= a for a, b in zip(x, x[1:])):
-        raise InputError("scale calibration knots inverse_depth_per_m must be positive and strictly increasing")
+    x, y = _knot_pairs(inverse_depth, log_shift, "inverse_depth_per_m", "depth_log_shift")
+    if x[0] <= 0:
+        raise InputError("scale calibration knots inverse_depth_per_m must be positive")
     return x, y
 
 
