@@ -348,6 +348,13 @@ def test_training_stage_fits_and_writes_the_calibration(tmp_path):
     assert set(DFDModel.load(tmp_path / "m").scale_calibration.to_config()) == {
         "log_b", "log_b_calibrated", "inverse_depth_per_m", "depth_log_shift", "border_log_shift"}
     assert len(cal["border_log_shift"]) == 2 and fit["border_levels"] == 2 and fit["depth_bins"] == 3
+    # the figure of the parts
+    assert calibrate_scale.main(["--model", str(tmp_path / "m"), "--out", str(tmp_path / "p"), "--planes", "8",
+                                 "--scenes", "1", "--bins", "4", "--smooth", "1", "--threads", "1", "--depth-bins", "3",
+                                 "--border-levels", "2", "--plot", str(tmp_path / "fig" / "cal.png")]) == 0
+    assert (tmp_path / "fig" / "cal.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(InputError, match="no scale calibration"):
+        calibrate_scale.plot_scale_calibration(ScaleCalibration(), tmp_path / "none.png")
     # without the depth and edge parts: the scale part alone
     assert calibrate_scale.main(["--model", str(tmp_path / "m"), "--out", str(tmp_path / "s"), "--planes", "8",
                                  "--scenes", "1", "--bins", "4", "--smooth", "1", "--threads", "1", "--depth-bins", "0",

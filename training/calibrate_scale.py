@@ -44,12 +44,13 @@ from tqdm import tqdm
 
 from data_synth import DefocusPairDataset
 from tdfd.model import DFDModel
-from tdfd.model.scale_calibration import ScaleCalibration, tile_border_distance
+from tdfd.errors import InputError
+from tdfd.model.scale_calibration import ScaleCalibration, calibrate_log_scale, tile_border_distance
 from tdfd.model.scale_calibration_fit import fit_tile_calibration
 
 from .data import STRUCTURE_LAYOUTS, textured_scenes
 
-__all__ = ["PLANE_SEED", "STRUCTURE_SEED", "collect_scale_errors", "calibrate_model", "main"]
+__all__ = ["PLANE_SEED", "STRUCTURE_SEED", "collect_scale_errors", "calibrate_model", "plot_scale_calibration", "main"]
 
 logger = logging.getLogger("training.calibrate_scale")
 
@@ -137,6 +138,52 @@ def calibrate_model(model: DFDModel, planes: int = 2048, scenes: int = 64, bins:
     return info
 
 
+def plot_scale_calibration(calibration: ScaleCalibration, path: Path, title: str = "") -> None:
+    """The calibration's parts as factors on ``b``: ``exp(s)`` against the CNN's ``b``, ``exp(g)``
+    against the depth (m) and ``exp(h)`` per distance to the grid's edge; a part the map lacks
+    is left out. Written to ``path`` (PNG).
+
+    Raises:
+        InputError: the calibration is the identity (nothing to plot).
+    """
+    cfg = calibration.to_config()
+    if cfg is None:
+        raise InputError("the model has no scale calibration to plot")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4))
+    if "log_b" in cfg:
+        x = torch.linspace(min(cfg["log_b"]) - 0.5, max(cfg["log_b"]) + 0.5, 400, dtype=torch.float64)
+        f = (calibrate_log_scale(x, torch.tensor(cfg["log_b"], dtype=torch.float64),
+                                 torch.tensor(cfg["log_b_calibrated"], dtype=torch.float64)) - x).exp()
+        axes[0].plot((100 * x.exp()).numpy(), f.numpy(), "-")
+        axes[0].plot([100 * math.exp(v) for v in cfg["log_b"]],
+                     [math.exp(c - b) for b, c in zip(cfg["log_b"], cfg["log_b_calibrated"])], "o", ms=3)
+    axes[0].set(xscale="log", xlabel="the CNN's predicted scale b (% relative error)", ylabel="factor b' / b",
+                title="scale part exp(s)")
+    if "inverse_depth_per_m" in cfg:
+        q = torch.tensor(cfg["inverse_depth_per_m"], dtype=torch.float64)
+        axes[1].plot((1.0 / q).numpy(), [math.exp(v) for v in cfg["depth_log_shift"]], "o-", ms=3)
+    axes[1].set(xlabel="refined depth (m)", ylabel="factor", title="depth part exp(g)")
+    if "border_log_shift" in cfg:
+        shifts = cfg["border_log_shift"]
+        axes[2].bar([str(k) if k < len(shifts) - 1 else f">={k}" for k in range(len(shifts))],
+                    [math.exp(v) for v in shifts])
+    axes[2].set(xlabel="tiles to the grid's edge", ylabel="factor", title="edge part exp(h)")
+    for ax in axes:
+        ax.axhline(1.0, color="k", lw=0.8)
+        ax.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m training.calibrate_scale", description=__doc__.splitlines()[0])
     p.add_argument("--model", required=True, help="model stem written by python -m training (e.g. models/reference)")
@@ -151,6 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--min-factor", default="none",
                    help="smallest factor b'/b at a knot (1: only widen the CNN's scale); default 'none': no bound")
     p.add_argument("--threads", type=int, default=2, help="torch threads")
+    p.add_argument("--plot", help="also write the fitted parts as a figure (PNG) to this path")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stdout)
     if args.planes < 1 or args.scenes < 1:
@@ -171,6 +219,9 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out or args.model)
     weights, desc = model.save(out, extra=extra)
     logger.info("wrote %s and %s", weights, desc)
+    if args.plot:
+        plot_scale_calibration(model.scale_calibration, Path(args.plot), f"Scale calibration of {out.name}")
+        logger.info("wrote %s", args.plot)
     return 0
 
 
