@@ -203,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stdout)
     if args.planes < 1 or args.scenes < 1:
         p.error("--planes and --scenes must be >= 1")
-    if args.depth_bins in (1,) or args.depth_bins < 0 or args.border_levels in (1,) or args.border_levels < 0:
+    if min(args.depth_bins, args.border_levels) < 0 or 1 in (args.depth_bins, args.border_levels):
         p.error("--depth-bins and --border-levels must be 0 (without that part) or >= 2")
     try:
         min_factor = None if args.min_factor.lower() == "none" else float(args.min_factor)

@@ -53,6 +53,19 @@ def _log_factor(error: torch.Tensor, scale: torch.Tensor) -> float:
     return math.log(max(float(error.abs().median()), 1e-300) / laplace_mixture_median(scale))
 
 
+def _band_factors(key: torch.Tensor, scale: torch.Tensor, error: torch.Tensor, bins: int, tied: str
+                  ) -> tuple[list[float], list[float]]:
+    """Split the tiles into ``bins`` equal-count bands by ``key``: per band the median ``key`` and
+    :func:`_log_factor`; ``tied`` is the error raised when two bands share a median."""
+    medians, log_f = [], []
+    for part in torch.tensor_split(torch.argsort(key, stable=True), bins):
+        medians.append(float(key[part].median()))
+        log_f.append(_log_factor(error[part], scale[part]))
+    if any(b <= a for a, b in zip(medians, medians[1:])):
+        raise InputError(tied)
+    return medians, log_f
+
+
 def _moving_average(v: torch.Tensor, width: int) -> torch.Tensor:
     if width <= 1:
         return v
@@ -115,14 +128,8 @@ def fit_scale_calibration(scale: torch.Tensor, error: torch.Tensor, bins: int = 
     _check(b, e, bins, smooth)
     if min_factor is not None and not (math.isfinite(min_factor) and min_factor > 0):
         raise InputError(f"min_factor must be positive and finite or None, got {min_factor}")
-    order = torch.argsort(b, stable=True)
-    log_b, log_f = [], []
-    for part in torch.tensor_split(order, bins):
-        log_b.append(math.log(float(b[part].median())))
-        log_f.append(_log_factor(e[part], b[part]))
-    kb = torch.tensor(log_b, dtype=torch.float64)
-    if bool((kb[1:] <= kb[:-1]).any()):
-        raise InputError("bins with equal median scale: fewer bins, or scales that vary")
+    medians, log_f = _band_factors(b, b, e, bins, "bins with equal median scale: fewer bins, or scales that vary")
+    kb = torch.tensor([math.log(v) for v in medians], dtype=torch.float64)
     f = _moving_average(torch.tensor(log_f, dtype=torch.float64), smooth)
     if min_factor is not None:
         f = f.clamp_min(math.log(min_factor))
@@ -131,15 +138,9 @@ def fit_scale_calibration(scale: torch.Tensor, error: torch.Tensor, bins: int = 
 
 def _fit_depth(q: torch.Tensor, log_b: torch.Tensor, e: torch.Tensor, bins: int, smooth: int
                ) -> tuple[torch.Tensor, torch.Tensor]:
-    order = torch.argsort(q, stable=True)
-    xs, fs = [], []
-    for part in torch.tensor_split(order, bins):
-        xs.append(float(q[part].median()))
-        fs.append(_log_factor(e[part], log_b[part].exp()))
-    kx = torch.tensor(xs, dtype=torch.float64)
-    if bool((kx[1:] <= kx[:-1]).any()):
-        raise InputError("depth bins with equal median inverse depth: fewer depth bins, or depths that vary")
-    return kx, _moving_average(torch.tensor(fs, dtype=torch.float64), smooth)
+    medians, log_f = _band_factors(q, log_b.exp(), e, bins, "depth bins with equal median inverse depth: fewer depth "
+                                   "bins, or depths that vary")
+    return torch.tensor(medians, dtype=torch.float64), _moving_average(torch.tensor(log_f, dtype=torch.float64), smooth)
 
 
 def _fit_border(n: torch.Tensor, log_b: torch.Tensor, e: torch.Tensor, levels: int) -> torch.Tensor:
