@@ -39,6 +39,7 @@ from benchmarks.depth_models import DepthModel, load_depth_model, predicted_scal
 from benchmarks.report import ROOT, markdown_table, update_section, with_model_option
 from benchmarks.uncertainty import CALIBRATION_TOLERANCE, decile_table, plot_calibration, scene_bootstrap
 from tdfd.model import DFDModel
+from tdfd.model.grid_edges import tile_border_distance
 from training.calibrate_scale import PLANE_SEED
 from training.calibrate_scale import STRUCTURE_SEED as CAL_STRUCTURE_SEED
 from training.config import DataConfig, EvalConfig, ModelConfig
@@ -54,11 +55,12 @@ def plane_tiles(model: DepthModel, samples: int, size: int, chunk: int = 16, see
                 ) -> dict[str, torch.Tensor]:
     """The refinement benchmark's first ``samples`` textured planes (seed :data:`BENCH_SEED`,
     full realism, as :func:`benchmarks.bench_refinement.bench_tiles`): per-tile ``true`` and
-    ``refined`` depth, ``confidence`` and ``scene`` (the plane's index), flattened."""
+    ``refined`` depth, ``confidence``, ``scene`` (the plane's index) and ``border`` (the tile's
+    distance in tiles to the grid's edge), flattened."""
     ev = EvalConfig(samples=samples, seed=seed, height=size, width=size)
     data = DataConfig(**{**DataConfig().__dict__, "options": dict(ev.options)})
     ds = make_dataset(data, ModelConfig(tile=model.tile, stride=model.stride), ev.seed, size, size)
-    out: dict[str, list[torch.Tensor]] = {"true": [], "refined": [], "confidence": [], "scene": []}
+    out: dict[str, list[torch.Tensor]] = {"true": [], "refined": [], "confidence": [], "scene": [], "border": []}
     for start in tqdm(range(0, samples, chunk), desc="planes", mininterval=10.0):
         idx = list(range(start, min(samples, start + chunk)))
         batch = fetch_batch(ds, idx)
@@ -67,6 +69,7 @@ def plane_tiles(model: DepthModel, samples: int, size: int, chunk: int = 16, see
         out["refined"].append(depth.flatten())
         out["confidence"].append(conf.flatten())
         out["scene"].append(torch.tensor(idx).view(-1, 1, 1, 1).expand(depth.shape).flatten())
+        out["border"].append(tile_border_distance(depth).expand(depth.shape).flatten())
     return {k: torch.cat(v) for k, v in out.items()}
 
 

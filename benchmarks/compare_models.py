@@ -116,8 +116,9 @@ def _rel(depth: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
 
 def compare(model_a: DepthModel, model_b: DepthModel, planes: int = 1024, scenes: int = 32, reps: int = 200,
             seed: int = 0) -> list[tuple[str, dict[str, float]]]:
-    """The paired comparisons: planes per tile and per plane, each structure layout and all
-    layouts per tile away from edges. Rows of ``(name, result)``."""
+    """The paired comparisons: planes per tile (all tiles, then the tiles on the edge of the
+    grid and those inside it) and per plane, each structure layout and all layouts per tile
+    away from edges. Rows of ``(name, result)``."""
     if model_a.camera.depth_range_m != model_b.camera.depth_range_m:
         raise ValueError("the two models' cameras have different working ranges: not the same benchmark")
     near, far = model_a.camera.depth_range_m
@@ -130,6 +131,10 @@ def compare(model_a: DepthModel, model_b: DepthModel, planes: int = 1024, scenes
         keep = (ta["true"] >= near) & (ta["true"] <= far)
         rows.append((f"textured planes ({planes}), per tile", paired_tile_median(
             _rel(ta["refined"], ta["true"])[keep], _rel(tb["refined"], tb["true"])[keep], ta["scene"][keep], reps, gen)))
+        for name, part in (("on the grid's edge", ta["border"] == 0), ("inside the edge", ta["border"] > 0)):
+            sel = keep & part
+            rows.append((f"textured planes ({planes}), per tile {name}", paired_tile_median(
+                _rel(ta["refined"], ta["true"])[sel], _rel(tb["refined"], tb["true"])[sel], ta["scene"][sel], reps, gen)))
         plane_true = torch.zeros(planes).index_reduce_(0, ta["scene"], ta["true"], "amax", include_self=False)
         in_range = (plane_true >= near) & (plane_true <= far)
         sel = in_range[ta["scene"]]
