@@ -39,7 +39,7 @@ from benchmarks.depth_models import DepthModel, load_depth_model, predicted_scal
 from benchmarks.report import ROOT, markdown_table, update_section, with_model_option
 from benchmarks.uncertainty import CALIBRATION_TOLERANCE, decile_table, plot_calibration, scene_bootstrap
 from tdfd.model import DFDModel
-from tdfd.model.grid_edges import tile_border_distance
+from tdfd.model.scale_calibration import tile_border_distance
 from training.calibrate_scale import PLANE_SEED
 from training.calibrate_scale import STRUCTURE_SEED as CAL_STRUCTURE_SEED
 from training.config import DataConfig, EvalConfig, ModelConfig

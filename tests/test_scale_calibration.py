@@ -17,8 +17,8 @@ from export.testing import make_test_model
 from tdfd import Camera
 from tdfd.errors import InputError, ModelError
 from tdfd.model import DFDModel
-from tdfd.model.grid_edges import tile_border_distance
-from tdfd.model.scale_calibration import ScaleCalibration, calibrate_log_scale, piecewise_linear, validate_knots
+from tdfd.model.scale_calibration import (ScaleCalibration, calibrate_log_scale, piecewise_linear,
+                                          tile_border_distance, validate_knots)
 from tdfd.model.scale_calibration_fit import fit_scale_calibration, fit_tile_calibration, laplace_mixture_median
 from tests.onnx_parity import assert_parity
 from training import calibrate_scale

@@ -45,8 +45,7 @@ from tqdm import tqdm
 from data_synth import DefocusPairDataset
 from tdfd.model import DFDModel
 from tdfd.errors import InputError
-from tdfd.model.grid_edges import tile_border_distance
-from tdfd.model.scale_calibration import ScaleCalibration, calibrate_log_scale
+from tdfd.model.scale_calibration import ScaleCalibration, calibrate_log_scale, tile_border_distance
 from tdfd.model.scale_calibration_fit import fit_tile_calibration
 
 from .data import STRUCTURE_LAYOUTS, textured_scenes

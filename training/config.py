@@ -90,9 +90,6 @@ class ModelConfig:
     #: sides (odd, in tiles) of the neighbourhoods whose pooled fits are extra features
     #: (a number or a list; [] or 1: none)
     context: list[int] = field(default_factory=list)
-    #: the CNN also sees each tile's distance to the grid's four edges, held at this many
-    #: tiles (:mod:`tdfd.model.grid_edges`; 0: not)
-    edge_input: int = 0
     #: the CNN also sees the lens's PSF family (:mod:`tdfd.model.psf_family_code`)
     psf_family_input: bool = False
     #: with ``psf_family_input``: the share of Gaussian and pillbox samples told their family
@@ -410,7 +407,6 @@ def validate_config(cfg: TrainConfig) -> None:
         (cfg.eval.bins >= 1 and cfg.eval.samples >= 1 and cfg.eval.textureless_samples >= 0,
          "eval.bins and eval.samples must be >= 1, eval.textureless_samples >= 0"),
         (cfg.model.confidence_scale > 0 and cfg.model.correction_scale > 0, "model scales must be > 0"),
-        (cfg.model.edge_input >= 0, "model.edge_input must be >= 0 (tiles; 0: no edge channels)"),
         (0.0 <= cfg.model.psf_family_told_share <= 1.0, "model.psf_family_told_share must be in [0, 1]"),
         (cfg.calibration.planes >= 1 and cfg.calibration.scenes >= 1, "calibration.planes and scenes must be >= 1"),
         (cfg.calibration.bins >= 2, "calibration.bins must be >= 2"),

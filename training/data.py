@@ -62,7 +62,7 @@ def build_model(mcfg: ModelConfig) -> DFDModel:
     return DFDModel(camera, tile=mcfg.tile, stride=mcfg.stride, confidence_scale=mcfg.confidence_scale,
                     correction_scale=mcfg.correction_scale, hidden=mcfg.hidden, blocks=mcfg.blocks,
                     kernel_size=mcfg.kernel_size, dilation_base=mcfg.dilation_base, context=mcfg.context,
-                    edge_input=mcfg.edge_input, psf_family_input=mcfg.psf_family_input)
+                    psf_family_input=mcfg.psf_family_input)
 
 
 def make_dataset(dcfg: DataConfig, mcfg: ModelConfig, seed: int, height: int | None = None,

@@ -54,7 +54,6 @@ from ..dfd.fourier_ratio import DFDResult, FourierRatioDFD, validate_pair
 from ..errors import InputError, ModelError
 from ..optics.thin_lens import camera_sigmas
 from ..registration import BreathingRegistration
-from .grid_edges import NUM_EDGE_CHANNELS, append_edge_maps
 from .psf_family_code import NUM_FAMILY_CHANNELS, append_family_maps, family_code
 from .refine import RefineNet
 from .scale_calibration import ScaleCalibration
@@ -229,9 +228,6 @@ class DFDModel(nn.Module):
             key): both frames are registered to a common image scale before the analytic
             stage (:class:`~tdfd.registration.BreathingRegistration`, about the centre of the
             frames given). 0 (default): no registration, no extra operation.
-        edge_input: the CNN also sees each tile's distance to the four edges of the grid,
-            held at this many tiles (:func:`~tdfd.model.grid_edges.edge_distance_maps`,
-            four channels before the PSF family's); 0 (default): not.
         psf_family_input: the CNN also sees the lens's PSF family as two constant feature
             maps (:mod:`tdfd.model.psf_family_code`; training tells it per sample).
         psf_family: the family the model is told at inference (``"gaussian"``,
@@ -252,8 +248,8 @@ class DFDModel(nn.Module):
 
     def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, *, analytic: dict[str, Any] | None = None,
                  confidence_scale: float = 0.01, correction_scale: float = 1.0, context: int | Sequence[int] = 1,
-                 magnification_per_dpt: float = 0.0, edge_input: int = 0, psf_family_input: bool = False,
-                 psf_family: str | None = None, scale_calibration: dict[str, list[float]] | None = None, **refine_config: Any) -> None:
+                 magnification_per_dpt: float = 0.0, psf_family_input: bool = False, psf_family: str | None = None,
+                 scale_calibration: dict[str, list[float]] | None = None, **refine_config: Any) -> None:
         super().__init__()
         analytic = dict(analytic or {})
         for key in ("tile", "stride", "validate", "camera"):
@@ -273,18 +269,13 @@ class DFDModel(nn.Module):
         self.analytic = FourierRatioDFD(camera, tile=tile, stride=stride, validate=False, **analytic)
         #: focus-breathing registration before the analytic stage (no parameters, no state)
         self.registration = BreathingRegistration(magnification_per_dpt, camera.lens_powers_dpt)
-        if isinstance(edge_input, bool) or not isinstance(edge_input, int) or edge_input < 0:
-            raise InputError(f"edge_input must be a non-negative integer (tiles; 0: off), got {edge_input!r}")
-        #: the CNN's edge-distance channels are held at this many tiles (0: no such channels)
-        self.edge_input = edge_input
         #: whether the CNN's input ends with the PSF family code (two channels)
         self.psf_family_input = bool(psf_family_input)
         #: the code told at inference, ``(1, 2, 1, 1)``: not saved (the JSON's ``psf_family`` is);
         #: the export keeps it one initializer of that name (:data:`PSF_FAMILY_INITIALIZER`)
         self.register_buffer(PSF_FAMILY_INITIALIZER, family_code(None).reshape(1, -1, 1, 1), persistent=False)
         self.psf_family: str | None = None
-        channels = (num_features(self.analytic.num_rings, self.contexts) + NUM_EDGE_CHANNELS * bool(self.edge_input)
-                    + NUM_FAMILY_CHANNELS * self.psf_family_input)
+        channels = num_features(self.analytic.num_rings, self.contexts) + NUM_FAMILY_CHANNELS * self.psf_family_input
         try:
             self.refine = RefineNet(channels, **refine_config)
         except TypeError as exc:
@@ -352,8 +343,7 @@ class DFDModel(nn.Module):
                 "camera_name": self.camera.name, "tile": self.tile, "stride": self.stride,
                 "analytic": self.analytic_config, "confidence_scale": self.confidence_scale,
                 "correction_scale": self.correction_scale, "context": self.context,
-                "magnification_per_dpt": self.magnification_per_dpt, "edge_input": self.edge_input,
-                "psf_family_input": self.psf_family_input,
+                "magnification_per_dpt": self.magnification_per_dpt, "psf_family_input": self.psf_family_input,
                 "psf_family": self.psf_family, "scale_calibration": self.scale_calibration.to_config(),
                 "refine": {k: v for k, v in self.refine.config().items() if k not in ("in_channels", "out_channels")}}
 
@@ -370,8 +360,6 @@ class DFDModel(nn.Module):
         if self.validate and not is_exporting():
             validate_pair(image_f1, image_f2, self.tile)
         feats, r = self._analytic_features(*self.registration(image_f1, image_f2))
-        if self.edge_input:
-            feats = append_edge_maps(feats, self.edge_input)
         if self.psf_family_input:
             feats = append_family_maps(feats, self.psf_family_code if psf_family_codes is None else psf_family_codes)
         elif psf_family_codes is not None:
@@ -516,7 +504,6 @@ class DFDModel(nn.Module):
             return cls(camera, tile=cfg["tile"], stride=cfg["stride"], analytic=cfg.get("analytic") or {},
                        confidence_scale=cfg["confidence_scale"], correction_scale=cfg["correction_scale"],
                        context=cfg.get("context", 1), magnification_per_dpt=cfg.get("magnification_per_dpt", 0.0),
-                       edge_input=cfg.get("edge_input", 0),
                        psf_family_input=cfg.get("psf_family_input", False), psf_family=cfg.get("psf_family"),
                        scale_calibration=cfg.get("scale_calibration"),
                        **cfg["refine"])

@@ -43,9 +43,8 @@ import torch
 from torch import nn
 
 from ..errors import InputError
-from .grid_edges import tile_border_distance
 
-__all__ = ["piecewise_linear", "calibrate_log_scale", "validate_knots",
+__all__ = ["piecewise_linear", "calibrate_log_scale", "tile_border_distance", "validate_knots",
            "validate_depth_knots", "validate_border_shifts", "ScaleCalibration"]
 
 #: keys of a calibration's JSON description; the first two go together, and so do the next two
@@ -158,6 +157,34 @@ def calibrate_log_scale(log_scale: torch.Tensor, knots_log_b: torch.Tensor, knot
         tensor([-5.0000, -3.5000, -2.0000])
     """
     return log_scale + piecewise_linear(log_scale, knots_log_b, knots_log_b_calibrated.to(knots_log_b.dtype) - knots_log_b)
+
+
+def tile_border_distance(grid: torch.Tensor) -> torch.Tensor:
+    """Each cell's distance, in cells, to the nearest edge of a ``(B, C, h, w)`` grid.
+
+    Built from cumulative sums of ones (no shape arithmetic), so an ONNX graph computes it
+    for any ``h, w``.
+
+    Args:
+        grid: ``(B, C, h, w)``; only its shape, dtype and device are used.
+
+    Returns:
+        ``(1, 1, h, w)`` of ``grid``'s dtype: ``min(i, h - 1 - i, j, w - 1 - j)``.
+
+    Example:
+        >>> tile_border_distance(torch.zeros(1, 1, 3, 4))[0, 0]
+        tensor([[0., 0., 0., 0.],
+                [0., 1., 1., 0.],
+                [0., 0., 0., 0.]])
+    """
+    if grid.dim() != 4:
+        raise InputError(f"grid must be (B, C, h, w), got shape {tuple(grid.shape)}")
+    ones = torch.ones_like(grid[:1, :1])
+    row = ones.cumsum(2)  # 1 .. h down the rows
+    col = ones.cumsum(3)
+    from_top, from_bottom = row - 1, ones.sum(2, keepdim=True) - row
+    from_left, from_right = col - 1, ones.sum(3, keepdim=True) - col
+    return torch.minimum(torch.minimum(from_top, from_bottom), torch.minimum(from_left, from_right))
 
 
 class ScaleCalibration(nn.Module):
