@@ -129,12 +129,11 @@ def compare(model_a: DepthModel, model_b: DepthModel, planes: int = 1024, scenes
         if not torch.equal(ta["true"], tb["true"]):
             raise ValueError("the two models' tile grids differ: not the same tiles")
         keep = (ta["true"] >= near) & (ta["true"] <= far)
-        rows.append((f"textured planes ({planes}), per tile", paired_tile_median(
-            _rel(ta["refined"], ta["true"])[keep], _rel(tb["refined"], tb["true"])[keep], ta["scene"][keep], reps, gen)))
-        for name, part in (("on the grid's edge", ta["border"] == 0), ("inside the edge", ta["border"] > 0)):
-            sel = keep & part
-            rows.append((f"textured planes ({planes}), per tile {name}", paired_tile_median(
-                _rel(ta["refined"], ta["true"])[sel], _rel(tb["refined"], tb["true"])[sel], ta["scene"][sel], reps, gen)))
+        ea, eb = _rel(ta["refined"], ta["true"]), _rel(tb["refined"], tb["true"])
+        for name, sel in (("", keep), (" on the grid's edge", keep & (ta["border"] == 0)),
+                          (" inside the edge", keep & (ta["border"] > 0))):
+            rows.append((f"textured planes ({planes}), per tile{name}",
+                         paired_tile_median(ea[sel], eb[sel], ta["scene"][sel], reps, gen)))
         plane_true = torch.zeros(planes).index_reduce_(0, ta["scene"], ta["true"], "amax", include_self=False)
         in_range = (plane_true >= near) & (plane_true <= far)
         sel = in_range[ta["scene"]]
