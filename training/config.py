@@ -95,6 +95,9 @@ class ModelConfig:
     #: with ``psf_family_input``: the share of Gaussian and pillbox samples told their family
     #: (the rest, and every power-exponential PSF, are unknown)
     psf_family_told_share: float = 0.5
+    #: with ``psf_family_input``: an unknown family is inferred from the whole image
+    #: (:mod:`tdfd.model.family_inference`), supervised by ``optim.family_weight``
+    family_inference: bool = False
 
 
 @dataclass
@@ -111,6 +114,8 @@ class OptimConfig:
         l1_weight: weight of a plain mean absolute relative error term added to the Laplace
             NLL (stabilises the start; the NLL alone calibrates the confidence).
         normaliser_batches: batches used to fit the feature standardisation before step 0.
+        family_weight: with ``model.family_inference``, weight of the cross-entropy of the
+            image-wide PSF family logits against each sample's true family.
     """
 
     steps: int = 2000
@@ -121,6 +126,7 @@ class OptimConfig:
     grad_clip: float = 1.0
     l1_weight: float = 0.2
     normaliser_batches: int = 4
+    family_weight: float = 0.1
 
 
 @dataclass
@@ -408,6 +414,9 @@ def validate_config(cfg: TrainConfig) -> None:
          "eval.bins and eval.samples must be >= 1, eval.textureless_samples >= 0"),
         (cfg.model.confidence_scale > 0 and cfg.model.correction_scale > 0, "model scales must be > 0"),
         (0.0 <= cfg.model.psf_family_told_share <= 1.0, "model.psf_family_told_share must be in [0, 1]"),
+        (cfg.model.psf_family_input or not cfg.model.family_inference,
+         "model.family_inference needs model.psf_family_input = true"),
+        (cfg.optim.family_weight >= 0, "optim.family_weight must be >= 0"),
         (cfg.calibration.planes >= 1 and cfg.calibration.scenes >= 1, "calibration.planes and scenes must be >= 1"),
         (cfg.calibration.bins >= 2, "calibration.bins must be >= 2"),
         (cfg.calibration.smooth >= 1 and cfg.calibration.smooth % 2 == 1, "calibration.smooth must be an odd width >= 1"),

@@ -22,7 +22,7 @@ import torch
 from data_synth import DefocusPairDataset
 from tdfd.camera import Camera
 from tdfd.camera_file import resolve_camera
-from tdfd.model import DFDModel, training_codes
+from tdfd.model import DFDModel, family_classes, training_codes
 
 from .config import TEXTURED_FAMILIES, ConfigError, DataConfig, ModelConfig
 
@@ -62,7 +62,8 @@ def build_model(mcfg: ModelConfig) -> DFDModel:
     return DFDModel(camera, tile=mcfg.tile, stride=mcfg.stride, confidence_scale=mcfg.confidence_scale,
                     correction_scale=mcfg.correction_scale, hidden=mcfg.hidden, blocks=mcfg.blocks,
                     kernel_size=mcfg.kernel_size, dilation_base=mcfg.dilation_base, context=mcfg.context,
-                    psf_family_input=mcfg.psf_family_input)
+                    psf_family_input=mcfg.psf_family_input,
+                    **({"family_inference": True} if mcfg.family_inference else {}))
 
 
 def make_dataset(dcfg: DataConfig, mcfg: ModelConfig, seed: int, height: int | None = None,
@@ -128,8 +129,12 @@ class Featurizer:
         target = batch["tile_depth"].float()
         if target.shape[-2:] != feats.shape[-2:]:
             raise ConfigError(f"dataset tile_depth {tuple(target.shape)} does not match the model grid {tuple(feats.shape)}")
-        return {"features": feats, "inverse_depth": r.inverse_depth.float(), "rel_error": r.rel_error.float(),
-                "tile_depth": target}
+        out = {"features": feats, "inverse_depth": r.inverse_depth.float(), "rel_error": r.rel_error.float(),
+               "tile_depth": target}
+        if self.model.refine.family is not None:  # each sample's true family: the inference's label
+            params = batch.get("params")
+            out["family_class"] = family_classes(params if isinstance(params, list) else [None] * i1.shape[0])
+        return out
 
 
 class StepBatches(torch.utils.data.Dataset):
@@ -172,13 +177,16 @@ class FeatureSet:
     rel_error: torch.Tensor
     tile_depth: torch.Tensor
     params: list
+    #: with the family inference: each sample's true class (:func:`~tdfd.model.family_inference.family_classes`)
+    family_class: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.features.shape[0])
 
     def chunks(self, size: int):
         for i in range(0, len(self), size):
-            yield {k: getattr(self, k)[i : i + size] for k in ("features", "inverse_depth", "rel_error", "tile_depth")}
+            keys = ("features", "inverse_depth", "rel_error", "tile_depth") + (("family_class",) if self.family_class is not None else ())
+            yield {k: getattr(self, k)[i : i + size] for k in keys}
 
 
 def featurize_dataset(dataset: Any, featurizer: Featurizer, count: int, chunk: int = 32) -> FeatureSet:

@@ -27,7 +27,7 @@ from tdfd.model import DFDModel
 from .calibrate_scale import calibrate_model
 from .config import ConfigError, TrainConfig, config_to_dict
 from .data import Featurizer, FeatureSet, StepBatches, build_model, featurize_dataset, fetch_batch, make_dataset
-from .losses import depth_relative_error, laplace_nll, refinement_loss
+from .losses import depth_relative_error, family_loss, laplace_nll, refinement_loss
 
 __all__ = ["train", "DistInfo", "setup_distributed", "validate", "save_checkpoint", "load_checkpoint",
            "CHECKPOINT_NAME", "LOG_COLUMNS"]
@@ -36,7 +36,8 @@ logger = logging.getLogger("training")
 
 CHECKPOINT_NAME = "checkpoint_last.pt"
 LOG_COLUMNS = ["step", "time_s", "lr", "loss", "nll", "l1", "train_mre", "samples_per_s", "val_nll",
-               "val_mre_refined", "val_mre_analytic", "val_mre_conf_top", "val_mre_conf_bottom", "val_conf_mean"]
+               "val_mre_refined", "val_mre_analytic", "val_mre_conf_top", "val_mre_conf_bottom", "val_conf_mean",
+               "family_ce", "val_family_acc"]
 
 
 @dataclass
@@ -77,7 +78,8 @@ class _Head(nn.Module):
         self.model = model
 
     def forward(self, features, inverse_depth, rel_error):
-        return self.model.head(features, inverse_depth, rel_error)
+        """``head``'s four outputs, then the image family logits (``None`` without the inference)."""
+        return (*self.model.head(features, inverse_depth, rel_error), self.model.family_logits(features))
 
 
 def _lr_lambda(cfg: TrainConfig):
@@ -133,9 +135,14 @@ def validate(model: DFDModel, data: FeatureSet, device: torch.device, chunk: int
     was_training = model.training
     model.eval()
     errs_r, errs_a, confs, nlls = [], [], [], []
+    hits, labelled = 0, 0
     for b in data.chunks(chunk):
         b = {k: v.to(device) for k, v in b.items()}
         q, log_b, conf, q_a = model.head(b["features"], b["inverse_depth"], b["rel_error"])
+        if "family_class" in b:  # the image-wide family verdict against the truth
+            known = b["family_class"] >= 0
+            hits += int((model.family_logits(b["features"]).argmax(1) == b["family_class"])[known].sum())
+            labelled += int(known.sum())
         nlls.append(laplace_nll(q, log_b, 1.0 / b["tile_depth"]) * q.numel())
         errs_r.append(depth_relative_error(1.0 / q, b["tile_depth"]).flatten().cpu())
         errs_a.append(depth_relative_error(1.0 / q_a, b["tile_depth"]).flatten().cpu())
@@ -147,7 +154,7 @@ def validate(model: DFDModel, data: FeatureSet, device: torch.device, chunk: int
     return {"val_nll": float(sum(nlls) / er.numel()), "val_mre_refined": float(er.median()),
             "val_mre_analytic": float(ea.median()), "val_mre_conf_top": float(er[order[half:]].median()),
             "val_mre_conf_bottom": float(er[order[:half]].median()) if half else float("nan"),
-            "val_conf_mean": float(c.mean())}
+            "val_conf_mean": float(c.mean()), **({"val_family_acc": hits / labelled} if labelled else {})}
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -285,7 +292,8 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
 
     bar = tqdm(total=steps, initial=start, disable=not dist.is_main, desc="train", mininterval=5.0, dynamic_ncols=True)
     step, stopped_early, last_val = start, False, {}
-    window = {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "n": 0, "t": time.perf_counter(), "samples": 0, "fresh": 0}
+    window = {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "family": 0.0, "n": 0, "t": time.perf_counter(),
+              "samples": 0, "fresh": 0}
     pool: list[dict[str, torch.Tensor]] = []
     model.train()
     for bid, fresh in zip(range(warm, n_batches), loader):
@@ -303,8 +311,12 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
                 idx = torch.randint(len(stacked["features"]), (cfg.data.batch_size,), generator=g)
                 mb = {k: v[idx] for k, v in stacked.items()}
             b = {k: v.to(dist.device, non_blocking=True) for k, v in mb.items()}
-            q, log_b, _conf, _qa = head(b["features"], b["inverse_depth"], b["rel_error"])
+            q, log_b, _conf, _qa, fam_logits = head(b["features"], b["inverse_depth"], b["rel_error"])
             loss, parts = refinement_loss(q, log_b, b["tile_depth"], cfg.optim.l1_weight)
+            if fam_logits is not None and cfg.optim.family_weight > 0:
+                fam = family_loss(fam_logits, b["family_class"])
+                loss = loss + cfg.optim.family_weight * fam
+                window["family"] += float(fam.detach())
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.optim.grad_clip > 0:
@@ -338,8 +350,10 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
                                loss=window["loss"] / n, nll=window["nll"] / n, l1=window["l1"] / n,
                                train_mre=window["mre"] / n, samples_per_s=window["fresh"] / dt)
                     bar.set_postfix(loss=f"{row['loss']:.3f}", mre=f"{row['train_mre']:.4f}")
-                    window = {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "n": 0, "t": time.perf_counter(),
-                              "samples": 0, "fresh": 0}
+                    if model.refine.family is not None:
+                        row["family_ce"] = window["family"] / n
+                    window = {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "family": 0.0, "n": 0,
+                              "t": time.perf_counter(), "samples": 0, "fresh": 0}
                 if step % cfg.val_every == 0 or last:
                     last_val = validate(model, val, dist.device)
                     row.update(step=step, time_s=time.perf_counter() - t_start, **last_val)

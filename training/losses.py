@@ -16,8 +16,9 @@ Example:
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
-__all__ = ["relative_error", "laplace_nll", "refinement_loss", "depth_relative_error"]
+__all__ = ["relative_error", "laplace_nll", "refinement_loss", "family_loss", "depth_relative_error"]
 
 
 def relative_error(q: torch.Tensor, q_true: torch.Tensor) -> torch.Tensor:
@@ -49,6 +50,22 @@ def refinement_loss(q: torch.Tensor, log_b: torch.Tensor, tile_depth: torch.Tens
     l1 = relative_error(q, q_true).abs().mean()
     loss = nll + l1_weight * l1 if l1_weight > 0 else nll
     return loss, {"nll": float(nll.detach()), "l1": float(l1.detach())}
+
+
+def family_loss(logits: torch.Tensor, family_class: torch.Tensor, ignore_index: int = -1) -> torch.Tensor:
+    """Cross-entropy of the image-wide PSF family logits ``(B, 3)`` against the true classes
+    ``(B,)`` (:func:`tdfd.model.family_inference.family_classes`; ``ignore_index``: no label);
+    0 when no sample of the batch has a label.
+
+    Example:
+        >>> import torch
+        >>> round(float(family_loss(torch.zeros(2, 3), torch.tensor([0, -1]))), 4)  # log 3
+        1.0986
+    """
+    labelled = family_class != ignore_index
+    if not bool(labelled.any()):
+        return logits.sum() * 0.0
+    return F.cross_entropy(logits[labelled], family_class[labelled])
 
 
 def depth_relative_error(depth: torch.Tensor, true_depth: torch.Tensor) -> torch.Tensor:

@@ -238,7 +238,9 @@ class DFDModel(nn.Module):
             ``log_b_calibrated`` and optionally ``inverse_depth_per_m``, ``depth_log_shift``,
             ``border_log_shift``); ``None``: identity.
         **refine_config: keyword arguments of :class:`~tdfd.model.refine.RefineNet`
-            (``hidden``, ``blocks``, ``kernel_size``).
+            (``hidden``, ``blocks``, ``kernel_size``, ``family_inference``: with
+            ``psf_family_input``, an unknown family is inferred from the whole image,
+            :mod:`tdfd.model.family_inference`).
 
     Shape:
         - ``image_f1``, ``image_f2``: ``(B, 1, H, W)`` float32, linear intensity in [0, 1].
@@ -276,6 +278,8 @@ class DFDModel(nn.Module):
         self.register_buffer(PSF_FAMILY_INITIALIZER, family_code(None).reshape(1, -1, 1, 1), persistent=False)
         self.psf_family: str | None = None
         channels = num_features(self.analytic.num_rings, self.contexts) + NUM_FAMILY_CHANNELS * self.psf_family_input
+        if refine_config.get("family_inference") and not self.psf_family_input:
+            raise InputError("family_inference needs psf_family_input (it completes an unknown family code)")
         try:
             self.refine = RefineNet(channels, **refine_config)
         except TypeError as exc:
@@ -416,6 +420,12 @@ class DFDModel(nn.Module):
         log_scale = self.scale_calibration((base + out[:, 1:2]).clamp(*_LOG_SCALE_BOUNDS), q).clamp(*_LOG_SCALE_BOUNDS)
         ratio = torch.exp(log_scale) / self.confidence_scale
         return q, log_scale, 1.0 / (1.0 + ratio * ratio), q_a
+
+    def family_logits(self, features: torch.Tensor) -> torch.Tensor | None:
+        """The image-wide PSF family logits ``(B, 3)`` over
+        :data:`~tdfd.model.family_inference.FAMILY_CLASSES` from :meth:`features` output
+        (``None`` for a CNN without ``family_inference``): what training supervises."""
+        return self.refine.standardised(features.to(self.refine.head.weight.dtype))[1]
 
     def analyse(self, image_f1: torch.Tensor, image_f2: torch.Tensor, psf_family_codes: torch.Tensor | None = None
                 ) -> RefinedResult:

@@ -29,6 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..errors import InputError, ShapeError
+from .family_inference import FamilyInference, complete_family_code
 
 __all__ = ["RefineNet", "ResidualBlock"]
 
@@ -71,6 +72,11 @@ class RefineNet(nn.Module):
         dilation_base: block ``i`` has dilation ``dilation_base ** i`` (1: none; 2: 1, 2, 4, ...),
             which widens the receptive field at no extra cost.
         out_channels: output maps (2: inverse-depth correction, log-scale correction).
+        family_inference: the input's last two channels are the PSF family code
+            (:mod:`tdfd.model.psf_family_code`); where it is all zeros (unknown), the code
+            inferred from the whole image (:class:`~tdfd.model.family_inference.FamilyInference`
+            on the other channels) takes its place.
+        family_hidden: width of that inference's per-tile layer.
 
     Shape:
         - Input: ``(B, C, h, w)`` per-tile features, any ``h, w >= 1``.
@@ -78,7 +84,8 @@ class RefineNet(nn.Module):
     """
 
     def __init__(self, in_channels: int, hidden: int = 32, blocks: int = 2, kernel_size: int = 3,
-                 dilation_base: int = 1, out_channels: int = 2) -> None:
+                 dilation_base: int = 1, out_channels: int = 2, family_inference: bool = False,
+                 family_hidden: int = 32) -> None:
         super().__init__()
         if in_channels < 1 or hidden < 1 or blocks < 0 or out_channels < 1:
             raise InputError(f"invalid RefineNet sizes: in={in_channels}, hidden={hidden}, blocks={blocks}, out={out_channels}")
@@ -95,11 +102,18 @@ class RefineNet(nn.Module):
         self.head = nn.Conv2d(hidden, out_channels, 1)
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
+        if family_inference and in_channels < 3:
+            raise InputError(f"family_inference needs the two code channels and at least one feature, got {in_channels}")
+        #: the image-wide PSF family inference (``None``: off)
+        self.family = FamilyInference(in_channels - 2, family_hidden) if family_inference else None
 
     def config(self) -> dict:
         """Constructor arguments (JSON-serialisable)."""
-        return {"in_channels": self.in_channels, "hidden": self.hidden, "blocks": self.blocks_n,
-                "kernel_size": self.kernel_size, "dilation_base": self.dilation_base, "out_channels": self.out_channels}
+        cfg = {"in_channels": self.in_channels, "hidden": self.hidden, "blocks": self.blocks_n,
+               "kernel_size": self.kernel_size, "dilation_base": self.dilation_base, "out_channels": self.out_channels}
+        if self.family is not None:
+            cfg.update(family_inference=True, family_hidden=self.family.hidden)
+        return cfg
 
     @torch.no_grad()
     def set_normaliser(self, mean: torch.Tensor, std: torch.Tensor) -> None:
@@ -109,7 +123,19 @@ class RefineNet(nn.Module):
         self.feature_mean.copy_(mean.reshape(1, -1, 1, 1))
         self.feature_std.copy_(std.reshape(1, -1, 1, 1).clamp_min(1e-3))
 
-    def forward(self, features: torch.Tensor) -> torch.Tensor:
+    def standardised(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The blocks' input: standardised features with an unknown family code replaced by
+        the inferred one, and the image family logits ``(B, 3)`` (``None`` without
+        ``family_inference``)."""
         x = (features - self.feature_mean) / self.feature_std
-        x = self.blocks(self.stem(x))
+        if self.family is None:
+            return x, None
+        code, logits = self.family(x[:, :-2])
+        maps = complete_family_code(features[:, -2:], code)
+        # standardised whole again rather than the code's channels alone: a (1, 2, 1, 1) slice of the
+        # normaliser is a constant the ONNX exporter may merge with the equal-valued code initializer
+        return (torch.cat([features[:, :-2], maps], 1) - self.feature_mean) / self.feature_std, logits
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        x = self.blocks(self.stem(self.standardised(features)[0]))
         return self.head(self.act(x))
