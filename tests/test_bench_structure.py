@@ -231,6 +231,25 @@ def test_the_told_runner_tells_each_scene_its_family_and_the_summary_compares():
     assert told["untold"] == pytest.approx(0.04, rel=1e-4) and told["share_told"] == 0.5
 
 
+def test_summary_splits_the_bound_tiles_by_their_information():
+    from benchmarks.bench_structure import INFORMATION_BANDS, summarise_structure
+
+    # six tiles away from edges: two well measured (bound 0.2 %), two middling (3 %), two without
+    # information (50 %); one more near an edge, which the split leaves out
+    t = torch.full((7,), 0.5)
+    bound = torch.tensor([0.002, 0.002, 0.03, 0.03, 0.5, 0.5, math.nan])
+    tiles = {"true": t, "refined": t * torch.tensor([1.01, 1.03, 1.05, 1.05, 1.3, 1.1, 2.0]),
+             "analytic": t * 1.2, "confidence": torch.tensor([0.9, 0.7, 0.3, 0.3, 0.0, 0.0, 1.0]),
+             "edge": torch.tensor([False] * 6 + [True]),
+             "bound_shared": bound, "bound_known": bound}
+    bands = summarise_structure(tiles, (0.3, 1.0))["bound"]["by_information"]
+    assert [b["lo"] for b in bands] == [INFORMATION_BANDS[0][0], 0.02, 0.05]  # empty bands are left out
+    assert [b["tiles"] for b in bands] == [2, 2, 2] and sum(b["share"] for b in bands) == pytest.approx(1.0)
+    assert bands[0]["refined"] == pytest.approx(0.01, rel=1e-4)  # torch's median: the lower of two
+    assert bands[0]["at_bound"] == pytest.approx(0.6745 * 0.002, rel=1e-3)
+    assert bands[2]["analytic"] == pytest.approx(0.2, rel=1e-4) and bands[0]["confidence"] == pytest.approx(0.7)
+
+
 def test_scene_bootstrap_counts_scenes_not_tiles():
     """Tiles whose errors share their scene's scale: resampling scenes gives a larger standard
     error than treating every tile as its own scene (the tiles are not independent)."""
