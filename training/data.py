@@ -121,10 +121,12 @@ class Featurizer:
     def __call__(self, batch: dict[str, Any]) -> dict[str, torch.Tensor]:
         i1 = batch["image_f1"].float()
         i2 = batch["image_f2"].float()
+        params = batch.get("params")
+        if not isinstance(params, list):  # a dataset that records no per-sample parameters
+            params = [None] * i1.shape[0]
         codes = None
         if self.model.psf_family_input:  # each sample's own PSF family, told or unknown
-            params = batch.get("params")
-            codes = training_codes(params if isinstance(params, list) else [None] * i1.shape[0], self.told_share)
+            codes = training_codes(params, self.told_share)
         feats, r = self.model.features(i1, i2, codes)
         target = batch["tile_depth"].float()
         if target.shape[-2:] != feats.shape[-2:]:
@@ -132,8 +134,7 @@ class Featurizer:
         out = {"features": feats, "inverse_depth": r.inverse_depth.float(), "rel_error": r.rel_error.float(),
                "tile_depth": target}
         if self.model.refine.family is not None:  # each sample's true family: the inference's label
-            params = batch.get("params")
-            out["family_class"] = family_classes(params if isinstance(params, list) else [None] * i1.shape[0])
+            out["family_class"] = family_classes(params)
         return out
 
 

@@ -79,7 +79,7 @@ class _Head(nn.Module):
 
     def forward(self, features, inverse_depth, rel_error):
         """``head``'s four outputs, then the image family logits (``None`` without the inference)."""
-        return (*self.model.head(features, inverse_depth, rel_error), self.model.family_logits(features))
+        return self.model.head_with_family(features, inverse_depth, rel_error)
 
 
 def _lr_lambda(cfg: TrainConfig):
@@ -138,10 +138,10 @@ def validate(model: DFDModel, data: FeatureSet, device: torch.device, chunk: int
     hits, labelled = 0, 0
     for b in data.chunks(chunk):
         b = {k: v.to(device) for k, v in b.items()}
-        q, log_b, conf, q_a = model.head(b["features"], b["inverse_depth"], b["rel_error"])
+        q, log_b, conf, q_a, family_logits = model.head_with_family(b["features"], b["inverse_depth"], b["rel_error"])
         if "family_class" in b:  # the image-wide family verdict against the truth
             known = b["family_class"] >= 0
-            hits += int((model.family_logits(b["features"]).argmax(1) == b["family_class"])[known].sum())
+            hits += int((family_logits.argmax(1) == b["family_class"])[known].sum())
             labelled += int(known.sum())
         nlls.append(laplace_nll(q, log_b, 1.0 / b["tile_depth"]) * q.numel())
         errs_r.append(depth_relative_error(1.0 / q, b["tile_depth"]).flatten().cpu())
@@ -188,6 +188,12 @@ def _setup_logging(out: Path, is_main: bool) -> logging.Handler | None:
 
 
 @torch.no_grad()
+def _new_window() -> dict[str, float]:
+    """Running sums of one logging window (losses, error, sample counts) and its start time."""
+    return {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "family": 0.0, "n": 0, "t": time.perf_counter(),
+            "samples": 0, "fresh": 0}
+
+
 def fit_normaliser(model: DFDModel, feats: torch.Tensor) -> None:
     """Per-channel mean/std of the features ``(N, C, h, w)`` into the CNN's standardisation."""
     x = feats.transpose(0, 1).reshape(feats.shape[1], -1).double()
@@ -292,8 +298,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
 
     bar = tqdm(total=steps, initial=start, disable=not dist.is_main, desc="train", mininterval=5.0, dynamic_ncols=True)
     step, stopped_early, last_val = start, False, {}
-    window = {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "family": 0.0, "n": 0, "t": time.perf_counter(),
-              "samples": 0, "fresh": 0}
+    window = _new_window()
     pool: list[dict[str, torch.Tensor]] = []
     model.train()
     for bid, fresh in zip(range(warm, n_batches), loader):
@@ -352,8 +357,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
                     bar.set_postfix(loss=f"{row['loss']:.3f}", mre=f"{row['train_mre']:.4f}")
                     if model.refine.family is not None:
                         row["family_ce"] = window["family"] / n
-                    window = {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "family": 0.0, "n": 0,
-                              "t": time.perf_counter(), "samples": 0, "fresh": 0}
+                    window = _new_window()
                 if step % cfg.val_every == 0 or last:
                     last_val = validate(model, val, dist.device)
                     row.update(step=step, time_s=time.perf_counter() - t_start, **last_val)

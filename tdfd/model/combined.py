@@ -411,21 +411,22 @@ class DFDModel(nn.Module):
             log Laplace scale of the relative error, the confidence, and the clamped
             analytic inverse depth.
         """
+        return self.head_with_family(features, inverse_depth, rel_error)[:4]
+
+    def head_with_family(self, features: torch.Tensor, inverse_depth: torch.Tensor, rel_error: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """:meth:`head`'s four outputs and, from the same pass, the image-wide PSF family logits
+        ``(B, 3)`` over :data:`~tdfd.model.family_inference.FAMILY_CLASSES` (``None`` for a CNN
+        without ``family_inference``): what training supervises."""
         wdt = self.refine.head.weight.dtype
-        out = self.refine(features)
+        out, family_logits = self.refine.forward_with_family(features)
         q_lo, q_hi = self.analytic.inv_depth_limits
         q_a = inverse_depth.to(wdt).clamp(q_lo, q_hi)
         q = (q_a + self.correction_scale * out[:, 0:1]).clamp(q_lo, q_hi)
         base = torch.log(rel_error.to(wdt).clamp_min(1e-6)).clamp(*_LOG_REL_BOUNDS)
         log_scale = self.scale_calibration((base + out[:, 1:2]).clamp(*_LOG_SCALE_BOUNDS), q).clamp(*_LOG_SCALE_BOUNDS)
         ratio = torch.exp(log_scale) / self.confidence_scale
-        return q, log_scale, 1.0 / (1.0 + ratio * ratio), q_a
-
-    def family_logits(self, features: torch.Tensor) -> torch.Tensor | None:
-        """The image-wide PSF family logits ``(B, 3)`` over
-        :data:`~tdfd.model.family_inference.FAMILY_CLASSES` from :meth:`features` output
-        (``None`` for a CNN without ``family_inference``): what training supervises."""
-        return self.refine.standardised(features.to(self.refine.head.weight.dtype))[1]
+        return q, log_scale, 1.0 / (1.0 + ratio * ratio), q_a, family_logits
 
     def analyse(self, image_f1: torch.Tensor, image_f2: torch.Tensor, psf_family_codes: torch.Tensor | None = None
                 ) -> RefinedResult:

@@ -136,6 +136,11 @@ class RefineNet(nn.Module):
         # normaliser is a constant the ONNX exporter may merge with the equal-valued code initializer
         return (torch.cat([features[:, :-2], maps], 1) - self.feature_mean) / self.feature_std, logits
 
+    def forward_with_family(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """:meth:`forward`'s output and, from the same pass, the image family logits ``(B, 3)``
+        (``None`` without ``family_inference``): what training supervises."""
+        x, logits = self.standardised(features)
+        return self.head(self.act(self.blocks(self.stem(x)))), logits
+
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        x = self.blocks(self.stem(self.standardised(features)[0]))
-        return self.head(self.act(x))
+        return self.forward_with_family(features)[0]
