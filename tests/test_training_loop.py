@@ -124,3 +124,21 @@ def test_calibration_stage_runs_after_training_when_enabled(tmp_path):
 def test_calibration_config_is_checked(tmp_path, setting, match):
     with pytest.raises(ConfigError, match=match):
         _cfg(tmp_path, "bad", setting)
+
+
+@pytest.mark.parametrize("device", ["cpu", "cuda:0"])
+def test_threads_setting_applies_on_every_device(tmp_path, monkeypatch, device):
+    """``threads`` limits the training process on a GPU too: there it gathers the replay
+    minibatches beside busy data workers, and torch's default (a thread per core) made a CUDA
+    run 5x slower on a 16-core machine (models/README.md, the GPU runs of 2026-11-27)."""
+    import training.loop as loop
+
+    calls: list[int] = []
+    monkeypatch.setattr(loop, "setup_distributed", lambda _dev: loop.DistInfo(0, 1, 0, torch.device(device)))
+    monkeypatch.setattr(loop.torch, "set_num_threads", calls.append)
+    monkeypatch.setattr(loop, "_train", lambda *args: {"stub": True})
+    assert train(_cfg(tmp_path, "threads", "threads=3")) == {"stub": True}
+    assert calls == [3]
+    calls.clear()
+    train(_cfg(tmp_path, "default_threads", "threads=0"))
+    assert calls == []

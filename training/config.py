@@ -200,7 +200,8 @@ class TrainConfig:
         out_dir: run directory (checkpoints, ``train_log.csv``, report, final model).
         seed: seed of the model initialisation.
         device: ``auto`` (CUDA when available), ``cpu`` or ``cuda``/``cuda:N``.
-        threads: torch intra-op threads on CPU (0 = leave torch's default).
+        threads: torch intra-op threads of the training process on any device (0 = leave torch's
+            default, one per core, which contends with busy data workers).
         log_every: steps between CSV log rows.
         val_every: steps between validations.
         ckpt_every: steps between checkpoints (the last step always writes one).

@@ -220,7 +220,9 @@ def train(cfg: TrainConfig, resume: bool = False, stop_at_step: int | None = Non
     """
     t_start = time.perf_counter()
     dist = setup_distributed(cfg.device)
-    if cfg.threads and dist.device.type == "cpu":
+    if cfg.threads:
+        # on a GPU too: the process gathers replay minibatches on the CPU beside the data
+        # workers, and torch's default of one thread per core there slowed a CUDA run 5x
         torch.set_num_threads(cfg.threads)
     out = Path(cfg.out_dir)
     if dist.is_main:
