@@ -187,13 +187,13 @@ def _setup_logging(out: Path, is_main: bool) -> logging.Handler | None:
     return handler
 
 
-@torch.no_grad()
 def _new_window() -> dict[str, float]:
     """Running sums of one logging window (losses, error, sample counts) and its start time."""
     return {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "family": 0.0, "n": 0, "t": time.perf_counter(),
             "samples": 0, "fresh": 0}
 
 
+@torch.no_grad()
 def fit_normaliser(model: DFDModel, feats: torch.Tensor) -> None:
     """Per-channel mean/std of the features ``(N, C, h, w)`` into the CNN's standardisation."""
     x = feats.transpose(0, 1).reshape(feats.shape[1], -1).double()
