@@ -90,8 +90,6 @@ class ModelConfig:
     #: sides (odd, in tiles) of the neighbourhoods whose pooled fits are extra features
     #: (a number or a list; [] or 1: none)
     context: list[int] = field(default_factory=list)
-    #: the CNN also sees each ring's orientation moments in both frames (:mod:`tdfd.dfd.orientation`)
-    orientation_input: bool = False
     #: the CNN also sees the lens's PSF family (:mod:`tdfd.model.psf_family_code`)
     psf_family_input: bool = False
     #: with ``psf_family_input``: the share of Gaussian and pillbox samples told their family

@@ -1,10 +1,8 @@
-"""Analytic depth from defocus: tile spectra, the rings' orientation moments, the Fourier-ratio
-estimator, calibration."""
+"""Analytic depth from defocus: tile spectra, the Fourier-ratio estimator, calibration."""
 
 from .fourier_ratio import DFDResult, FourierRatioDFD, fourier_ratio_dfd, validate_pair, whole_image_dfd
-from .orientation import RingOrientation
 from .register import register_sensor_pair
 from .spectra import TileSpectra, fft_tile_power, periodic_hann
 
 __all__ = ["DFDResult", "FourierRatioDFD", "fourier_ratio_dfd", "validate_pair", "whole_image_dfd",
-           "TileSpectra", "fft_tile_power", "periodic_hann", "register_sensor_pair", "RingOrientation"]
+           "TileSpectra", "fft_tile_power", "periodic_hann", "register_sensor_pair"]

@@ -54,7 +54,6 @@ from ..camera import Camera
 from ..errors import DTypeError, InputError, NonFiniteError, RangeError, ShapeError
 from ..grid import check_grid, grid_shape
 from ..optics.thin_lens import depth_from_square_difference, square_difference_slope
-from .orientation import RingOrientation
 from .spectra import TileSpectra, periodic_hann
 
 __all__ = ["validate_pair", "DFDResult", "FourierRatioDFD", "fourier_ratio_dfd", "whole_image_dfd", "noise_variance_per_tile"]
@@ -233,8 +232,6 @@ class FourierRatioDFD(nn.Module):
         # expected ring power of unit-variance white noise (sum of the exact per-bin gains)
         self.register_buffer("ring_noise_gain", (member @ self.spectra.noise_gain())[None, :, None, None], persistent=False)
         self.register_buffer("window", periodic_hann(tile, torch.float64), persistent=False)
-        #: the rings' orientation moments (:meth:`measure_oriented`; no parameters, no state)
-        self.orientation = RingOrientation(self.spectra, rings)
         # per-bin -1/omega^2 over region R, for eq. 13
         in_band = member.sum(0)
         self.register_buffer("eq13_weight", (in_band / omega2.clamp_min(1e-12) / in_band.sum())[None, :, None, None], persistent=False)
@@ -264,19 +261,6 @@ class FourierRatioDFD(nn.Module):
         """The measurements the fit uses, per tile: ring power sums of both frames
         ``(B, R, h, w)`` each, the white-noise variance and both windowed tile means
         ``(B, 1, h, w)`` each (no input validation)."""
-        return self._measure(image_f1, image_f2, orientation=False)[0]
-
-    def measure_oriented(self, image_f1: torch.Tensor, image_f2: torch.Tensor
-                         ) -> tuple[tuple[torch.Tensor, ...], torch.Tensor]:
-        """:meth:`measure`'s output and, from the same DFT, each ring's orientation moments
-        (:class:`~tdfd.dfd.orientation.RingOrientation`) of both frames, ``(B, 4R, h, w)``:
-        frame 1's ``c_r`` and ``s_r``, then frame 2's (no input validation)."""
-        meas, moments = self._measure(image_f1, image_f2, orientation=True)
-        b = image_f1.shape[0]
-        return meas, torch.cat([moments[:b], moments[b:]], 1)
-
-    def _measure(self, image_f1: torch.Tensor, image_f2: torch.Tensor, orientation: bool
-                 ) -> tuple[tuple[torch.Tensor, ...], torch.Tensor | None]:
         dt = image_f1.dtype
         b = image_f1.shape[0]
         x = torch.cat([image_f1, image_f2], 0)  # both frames in one batch (2B, 1, H, W)
@@ -286,8 +270,7 @@ class FourierRatioDFD(nn.Module):
         noise = noise.clamp_min(self.min_noise_std ** 2)
         a = self.spectra.coefficients(x)  # (2B, 4 K1^2, h, w)
         r = F.conv2d(a * a, self.ring_weights.to(dt))  # (2B, R, h, w) ring power sums
-        moments = self.orientation(a, r) if orientation else None
-        return (r[:b], r[b:], noise, m[:b], m[b:]), moments
+        return r[:b], r[b:], noise, m[:b], m[b:]
 
     def fit(self, r1: torch.Tensor, r2: torch.Tensor, noise: torch.Tensor, m1: torch.Tensor, m2: torch.Tensor,
             count_scale: float | torch.Tensor = 1.0, per_bin: torch.Tensor | None = None) -> DFDResult:

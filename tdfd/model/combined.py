@@ -228,10 +228,6 @@ class DFDModel(nn.Module):
             key): both frames are registered to a common image scale before the analytic
             stage (:class:`~tdfd.registration.BreathingRegistration`, about the centre of the
             frames given). 0 (default): no registration, no extra operation.
-        orientation_input: the CNN also sees each ring's orientation moments in both frames
-            (:class:`~tdfd.dfd.orientation.RingOrientation`: ``4R`` channels after the
-            analytic features, before the PSF family's): where in the ring the power lies,
-            which an astigmatic PSF's blur depends on.
         psf_family_input: the CNN also sees the lens's PSF family as two constant feature
             maps (:mod:`tdfd.model.psf_family_code`; training tells it per sample).
         psf_family: the family the model is told at inference (``"gaussian"``,
@@ -254,9 +250,8 @@ class DFDModel(nn.Module):
 
     def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, *, analytic: dict[str, Any] | None = None,
                  confidence_scale: float = 0.01, correction_scale: float = 1.0, context: int | Sequence[int] = 1,
-                 magnification_per_dpt: float = 0.0, orientation_input: bool = False, psf_family_input: bool = False,
-                 psf_family: str | None = None, scale_calibration: dict[str, list[float]] | None = None,
-                 **refine_config: Any) -> None:
+                 magnification_per_dpt: float = 0.0, psf_family_input: bool = False, psf_family: str | None = None,
+                 scale_calibration: dict[str, list[float]] | None = None, **refine_config: Any) -> None:
         super().__init__()
         analytic = dict(analytic or {})
         for key in ("tile", "stride", "validate", "camera"):
@@ -276,18 +271,13 @@ class DFDModel(nn.Module):
         self.analytic = FourierRatioDFD(camera, tile=tile, stride=stride, validate=False, **analytic)
         #: focus-breathing registration before the analytic stage (no parameters, no state)
         self.registration = BreathingRegistration(magnification_per_dpt, camera.lens_powers_dpt)
-        if not isinstance(orientation_input, bool):
-            raise InputError(f"orientation_input must be True or False, got {orientation_input!r}")
-        #: whether the CNN sees the rings' orientation moments (4R channels)
-        self.orientation_input = orientation_input
         #: whether the CNN's input ends with the PSF family code (two channels)
         self.psf_family_input = bool(psf_family_input)
         #: the code told at inference, ``(1, 2, 1, 1)``: not saved (the JSON's ``psf_family`` is);
         #: the export keeps it one initializer of that name (:data:`PSF_FAMILY_INITIALIZER`)
         self.register_buffer(PSF_FAMILY_INITIALIZER, family_code(None).reshape(1, -1, 1, 1), persistent=False)
         self.psf_family: str | None = None
-        channels = (num_features(self.analytic.num_rings, self.contexts) + 4 * self.analytic.num_rings * orientation_input
-                    + NUM_FAMILY_CHANNELS * self.psf_family_input)
+        channels = num_features(self.analytic.num_rings, self.contexts) + NUM_FAMILY_CHANNELS * self.psf_family_input
         if refine_config.get("family_inference") and not self.psf_family_input:
             raise InputError("family_inference needs psf_family_input (it completes an unknown family code)")
         try:
@@ -357,8 +347,7 @@ class DFDModel(nn.Module):
                 "camera_name": self.camera.name, "tile": self.tile, "stride": self.stride,
                 "analytic": self.analytic_config, "confidence_scale": self.confidence_scale,
                 "correction_scale": self.correction_scale, "context": self.context,
-                "magnification_per_dpt": self.magnification_per_dpt, "orientation_input": self.orientation_input,
-                "psf_family_input": self.psf_family_input,
+                "magnification_per_dpt": self.magnification_per_dpt, "psf_family_input": self.psf_family_input,
                 "psf_family": self.psf_family, "scale_calibration": self.scale_calibration.to_config(),
                 "refine": {k: v for k, v in self.refine.config().items() if k not in ("in_channels", "out_channels")}}
 
@@ -383,17 +372,11 @@ class DFDModel(nn.Module):
 
     def _analytic_features(self, image_f1: torch.Tensor, image_f2: torch.Tensor) -> tuple[torch.Tensor, DFDResult]:
         """:meth:`features` on frames already registered."""
-        moments = None
-        if self.orientation_input:
-            meas, moments = self.analytic.measure_oriented(image_f1, image_f2)
-        else:
-            meas = self.analytic.measure(image_f1, image_f2)
+        meas = self.analytic.measure(image_f1, image_f2)
         b = image_f1.shape[0]
         r, *pooled = self._fit_stacked(self.analytic, [meas] + [pool_measurements(meas, c) for c in self.contexts],
                                        (1, *self.contexts), b)
         feats = tile_features(r, self.analytic, pooled)
-        if moments is not None:
-            feats = torch.cat([feats, moments], 1)
         return feats.to(self.refine.head.weight.dtype), r
 
     @staticmethod
@@ -532,7 +515,6 @@ class DFDModel(nn.Module):
             return cls(camera, tile=cfg["tile"], stride=cfg["stride"], analytic=cfg.get("analytic") or {},
                        confidence_scale=cfg["confidence_scale"], correction_scale=cfg["correction_scale"],
                        context=cfg.get("context", 1), magnification_per_dpt=cfg.get("magnification_per_dpt", 0.0),
-                       orientation_input=cfg.get("orientation_input", False),
                        psf_family_input=cfg.get("psf_family_input", False), psf_family=cfg.get("psf_family"),
                        scale_calibration=cfg.get("scale_calibration"),
                        **cfg["refine"])
