@@ -28,11 +28,17 @@ model told the family it is saved with:
   480x640 (seed :data:`STRUCTURE_SEED`, ``--scenes`` per layout).
 
 A model that already has a calibration is refitted from its uncalibrated scale.
+
+A model with the structure pooling (:mod:`tdfd.model.structure_pooling`, ``--structure-pooling``)
+gets a second map of the same form, fitted the same way on the same scenes: from the calibrated
+scale of the CNN's depth (the pooling's weights) to the pooled depth's errors
+(``pooled_scale_calibration``).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import sys
@@ -70,17 +76,30 @@ def _scene_sets(model: DFDModel, planes: int, scenes: int, plane_size: int, stru
 
 @torch.no_grad()
 def collect_scale_errors(model: DFDModel, planes: int = 2048, scenes: int = 64, plane_size: int = 256,
-                         structure_size: tuple[int, int] = (480, 640)) -> dict[str, torch.Tensor]:
+                         structure_size: tuple[int, int] = (480, 640), pooled: bool = False) -> dict[str, torch.Tensor]:
     """The model's uncalibrated scale and observed error on the calibration scenes.
 
+    Args:
+        pooled: ``False``: the CNN's depth and its own scale (no pooling, no calibration);
+            ``True``: the structure-pooled depth and the CNN's *calibrated* scale (the model's
+            ``scale_calibration`` applied, its ``pooled_scale_calibration`` not).
+
     Returns:
-        ``scale`` (``b``, the CNN's before any calibration), ``error`` (signed relative
-        inverse-depth error), ``inverse_depth`` (the refined ``q``, 1/m), ``border`` (tiles
-        to the grid's edge) and ``set`` (0 planes, 1.. the structure layouts), ``(N,)``
-        float64 each, over the tiles whose true depth is in the working range.
+        ``scale`` (``b``, as ``pooled`` says), ``error`` (signed relative inverse-depth error),
+        ``inverse_depth`` (the refined ``q``, 1/m), ``border`` (tiles to the grid's edge) and
+        ``set`` (0 planes, 1.. the structure layouts), ``(N,)`` float64 each, over the tiles
+        whose true depth is in the working range.
+
+    Raises:
+        InputError: ``pooled`` for a model without the structure pooling.
     """
-    saved = model.scale_calibration
-    model.scale_calibration = ScaleCalibration()  # the CNN's own scale
+    if pooled and model.structure_pooling is None:
+        raise InputError("the model has no structure pooling whose errors could be collected")
+    saved = model.scale_calibration, model.structure_pooling, model.pooled_scale_calibration
+    if pooled:
+        model.pooled_scale_calibration = ScaleCalibration()
+    else:
+        model.scale_calibration, model.structure_pooling = ScaleCalibration(), None  # the CNN's own scale
     model.eval()
     near, far = model.camera.depth_range_m
     out: dict[str, list[torch.Tensor]] = {"scale": [], "error": [], "inverse_depth": [], "border": [], "set": []}
@@ -98,7 +117,7 @@ def collect_scale_errors(model: DFDModel, planes: int = 2048, scenes: int = 64, 
                 out["border"].append(tile_border_distance(true).expand_as(true)[keep])
                 out["set"].append(torch.full((int(keep.sum()),), float(k), dtype=torch.float64))
     finally:
-        model.scale_calibration = saved
+        model.scale_calibration, model.structure_pooling, model.pooled_scale_calibration = saved
     return {key: torch.cat(v) for key, v in out.items()}
 
 
@@ -106,17 +125,41 @@ def calibrate_model(model: DFDModel, planes: int = 2048, scenes: int = 64, bins:
                     min_factor: float | None = None, depth_bins: int = 20, border_levels: int = 5) -> dict[str, object]:
     """Fit and set ``model.scale_calibration`` (:func:`collect_scale_errors`, then
     :func:`~tdfd.model.scale_calibration_fit.fit_tile_calibration`; ``depth_bins`` or
-    ``border_levels`` 0: without that part).
+    ``border_levels`` 0: without that part), and for a model with the structure pooling its
+    ``pooled_scale_calibration`` after it (the same fit on the pooled errors).
 
     Returns:
-        What the fit used and found: seeds, counts, and per knot the factor ``b' / b`` of each part.
+        What the fit used and found: seeds, counts, and per knot the factor ``b' / b`` of each
+        part; the pooled map's under ``"pooled"``.
     """
     t0 = time.perf_counter()
     data = collect_scale_errors(model, planes, scenes)
-    cfg = fit_tile_calibration(data["scale"], data["error"], data["inverse_depth"] if depth_bins else None,
-                               data["border"] if border_levels else None, bins=bins, smooth=smooth,
-                               depth_bins=depth_bins, border_levels=border_levels, min_factor=min_factor)
-    model.scale_calibration = ScaleCalibration.from_config(cfg)
+    fit = dict(bins=bins, smooth=smooth, depth_bins=depth_bins, border_levels=border_levels, min_factor=min_factor)
+    model.scale_calibration = ScaleCalibration.from_config(_fit(data, fit))
+    info = _describe(model.scale_calibration.to_config(), data, planes, scenes, fit)
+    if model.structure_pooling is not None:
+        model.pooled_scale_calibration = ScaleCalibration()
+        pooled = collect_scale_errors(model, planes, scenes, pooled=True)
+        model.pooled_scale_calibration = ScaleCalibration.from_config(_fit(pooled, fit))
+        logger.info("the structure-pooled depth's scale:")
+        info["pooled"] = _describe(model.pooled_scale_calibration.to_config(), pooled, planes, scenes, fit)
+        info["pooled"]["structure_pooling"] = model.structure_pooling.to_config()
+    info["seconds"] = round(time.perf_counter() - t0, 1)
+    logger.info("fitted in %.0f s", info["seconds"])
+    return info
+
+
+def _fit(data: dict[str, torch.Tensor], fit: dict[str, object]) -> dict[str, list[float]]:
+    depth_bins, border_levels = fit["depth_bins"], fit["border_levels"]
+    return fit_tile_calibration(data["scale"], data["error"], data["inverse_depth"] if depth_bins else None,
+                                data["border"] if border_levels else None, **fit)
+
+
+def _describe(cfg: dict[str, list[float]], data: dict[str, torch.Tensor], planes: int, scenes: int,
+              fit: dict[str, object]) -> dict[str, object]:
+    """The fit's record (seeds, counts, knots as factors), logged as it is built."""
+    bins, smooth, min_factor = fit["bins"], fit["smooth"], fit["min_factor"]
+    depth_bins, border_levels = fit["depth_bins"], fit["border_levels"]
     factors = [round(math.exp(c - b), 4) for b, c in zip(cfg["log_b"], cfg["log_b_calibrated"])]
     info: dict[str, object] = {
         "plane_seed": PLANE_SEED, "structure_seed": STRUCTURE_SEED, "planes": planes, "scenes_per_layout": scenes,
@@ -133,8 +176,6 @@ def calibrate_model(model: DFDModel, planes: int = 2048, scenes: int = 64, bins:
     if "border_log_shift" in cfg:
         info["border_factors"] = [round(math.exp(v), 4) for v in cfg["border_log_shift"]]
         logger.info("  factors 0, 1, .. tiles from the edge %s", info["border_factors"])
-    info["seconds"] = round(time.perf_counter() - t0, 1)
-    logger.info("fitted in %.0f s", info["seconds"])
     return info
 
 
@@ -198,7 +239,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--min-factor", default="none",
                    help="smallest factor b'/b at a knot (1: only widen the CNN's scale); default 'none': no bound")
     p.add_argument("--threads", type=int, default=2, help="torch threads")
-    p.add_argument("--plot", help="also write the fitted parts as a figure (PNG) to this path")
+    p.add_argument("--plot", help="also write the fitted parts as a figure (PNG) to this path (the pooled map's "
+                   "beside it, <name>_pooled.png)")
+    p.add_argument("--structure-pooling", default="keep",
+                   help="'keep' (the model's own), 'none', 'default' (StructurePooling's defaults) or a JSON object "
+                        "of its options: the last stage whose scale is calibrated second")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stdout)
     if args.planes < 1 or args.scenes < 1:
@@ -211,6 +256,14 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--min-factor must be a number or 'none', got {args.min_factor!r}")
     torch.set_num_threads(args.threads)
     model = DFDModel.load(args.model)
+    if args.structure_pooling != "keep":
+        try:
+            options = {"none": None, "default": {}}.get(args.structure_pooling)
+            if args.structure_pooling not in ("none", "default"):
+                options = json.loads(args.structure_pooling)
+            model.set_structure_pooling(options)
+        except (json.JSONDecodeError, InputError, TypeError) as exc:
+            p.error(f"--structure-pooling: {exc}")
     meta = DFDModel.read_description(args.model)
     info = calibrate_model(model, args.planes, args.scenes, args.bins, args.smooth, min_factor, args.depth_bins,
                            args.border_levels)
@@ -222,6 +275,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.plot:
         plot_scale_calibration(model.scale_calibration, Path(args.plot), f"Scale calibration of {out.name}")
         logger.info("wrote %s", args.plot)
+        if model.structure_pooling is not None:
+            pooled_plot = Path(args.plot).with_name(Path(args.plot).stem + "_pooled.png")
+            plot_scale_calibration(model.pooled_scale_calibration, pooled_plot,
+                                   f"Scale calibration of {out.name}'s structure-pooled depth")
+            logger.info("wrote %s", pooled_plot)
     return 0
 
 

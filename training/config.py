@@ -98,6 +98,10 @@ class ModelConfig:
     #: with ``psf_family_input``: an unknown family is inferred from the whole image
     #: (:mod:`tdfd.model.family_inference`), supervised by ``optim.family_weight``
     family_inference: bool = False
+    #: options of the inference-only last stage that pools the tiles along the depth structure
+    #: (:class:`tdfd.model.structure_pooling.StructurePooling`; {} = none); training does not see
+    #: it, the calibration stage fits its output's scale
+    structure_pooling: dict = field(default_factory=dict)
 
 
 @dataclass

@@ -62,7 +62,7 @@ def build_model(mcfg: ModelConfig) -> DFDModel:
     return DFDModel(camera, tile=mcfg.tile, stride=mcfg.stride, confidence_scale=mcfg.confidence_scale,
                     correction_scale=mcfg.correction_scale, hidden=mcfg.hidden, blocks=mcfg.blocks,
                     kernel_size=mcfg.kernel_size, dilation_base=mcfg.dilation_base, context=mcfg.context,
-                    psf_family_input=mcfg.psf_family_input,
+                    psf_family_input=mcfg.psf_family_input, structure_pooling=mcfg.structure_pooling or None,
                     **({"family_inference": True} if mcfg.family_inference else {}))
 
 

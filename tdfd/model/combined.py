@@ -20,6 +20,13 @@ tile's distance to the grid's edge, fitted on held-out scenes
 makes the median error in every band of ``b``, of depth and of that distance its Laplace
 median ``b ln 2`` (issue 19). The confidence is computed from the calibrated ``b``.
 
+Optionally a last stage pools the tiles along the scene's depth structure
+(:class:`~tdfd.model.structure_pooling.StructurePooling`: a robust local surface fit of ``q``
+weighted by each tile's calibrated ``b``); its output's scale is calibrated again, by a second
+map of the same form fitted on the pooled errors (``pooled_scale_calibration``). Training
+never sees the stage (:meth:`DFDModel.head_with_family` is the CNN as trained); inference,
+the benchmarks and the export do (:meth:`DFDModel.head`).
+
 With the refinement head at zero (a fresh model) ``depth`` equals ``depth_analytic``
 exactly. The forward pass has no data-dependent Python control flow and no ``torch.fft``,
 so it exports to ONNX (turn input validation off first: :meth:`DFDModel.set_validate`).
@@ -57,6 +64,7 @@ from ..registration import BreathingRegistration
 from .psf_family_code import NUM_FAMILY_CHANNELS, append_family_maps, family_code
 from .refine import RefineNet
 from .scale_calibration import ScaleCalibration
+from .structure_pooling import StructurePooling
 
 __all__ = ["DFDModel", "RefinedResult", "tile_features", "num_features", "context_sizes", "pool_measurements",
            "MODEL_FORMAT"]
@@ -237,6 +245,11 @@ class DFDModel(nn.Module):
             (:meth:`~tdfd.model.scale_calibration.ScaleCalibration.to_config`: ``log_b``,
             ``log_b_calibrated`` and optionally ``inverse_depth_per_m``, ``depth_log_shift``,
             ``border_log_shift``); ``None``: identity.
+        structure_pooling: options of the last stage,
+            :class:`~tdfd.model.structure_pooling.StructurePooling` (``None``: no pooling).
+        pooled_scale_calibration: knots of the map of the calibrated log scale to the pooled
+            depth's log scale (same form as ``scale_calibration``; ``None``: identity). Only with
+            ``structure_pooling``.
         **refine_config: keyword arguments of :class:`~tdfd.model.refine.RefineNet`
             (``hidden``, ``blocks``, ``kernel_size``, ``family_inference``: with
             ``psf_family_input``, an unknown family is inferred from the whole image,
@@ -251,7 +264,9 @@ class DFDModel(nn.Module):
     def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, *, analytic: dict[str, Any] | None = None,
                  confidence_scale: float = 0.01, correction_scale: float = 1.0, context: int | Sequence[int] = 1,
                  magnification_per_dpt: float = 0.0, psf_family_input: bool = False, psf_family: str | None = None,
-                 scale_calibration: dict[str, list[float]] | None = None, **refine_config: Any) -> None:
+                 scale_calibration: dict[str, list[float]] | None = None,
+                 structure_pooling: dict[str, Any] | None = None,
+                 pooled_scale_calibration: dict[str, list[float]] | None = None, **refine_config: Any) -> None:
         super().__init__()
         analytic = dict(analytic or {})
         for key in ("tile", "stride", "validate", "camera"):
@@ -287,6 +302,9 @@ class DFDModel(nn.Module):
         self.set_psf_family(psf_family)
         #: the post-hoc map of the predicted log scale (identity until :mod:`training.calibrate_scale` sets one)
         self.scale_calibration = ScaleCalibration.from_config(scale_calibration)
+        self.structure_pooling: StructurePooling | None = None
+        self.pooled_scale_calibration = ScaleCalibration()
+        self.set_structure_pooling(structure_pooling, pooled_scale_calibration)
         self.validate = True
         #: after :meth:`load`: whether the analytic layer still gives the features the CNN
         #: was trained on (``None``: not checked).
@@ -330,6 +348,22 @@ class DFDModel(nn.Module):
         self.psf_family = family
         return self
 
+    def set_structure_pooling(self, options: dict[str, Any] | None,
+                              pooled_scale_calibration: dict[str, list[float]] | None = None) -> "DFDModel":
+        """Pool the tiles along the depth structure from now on (``options``:
+        :meth:`~tdfd.model.structure_pooling.StructurePooling.to_config`; ``None``: no pooling),
+        with the pooled depth's scale map (``None``: identity until
+        :mod:`training.calibrate_scale` fits one); returns ``self``. The weights do not depend on it.
+
+        Raises:
+            InputError: bad options, or a pooled calibration without pooling.
+        """
+        if options is None and pooled_scale_calibration is not None:
+            raise InputError("a pooled_scale_calibration needs structure_pooling")
+        self.structure_pooling = None if options is None else StructurePooling.from_config(dict(options))
+        self.pooled_scale_calibration = ScaleCalibration.from_config(pooled_scale_calibration)
+        return self
+
     def set_validate(self, flag: bool) -> "DFDModel":
         """Turn input validation on or off (off for export); returns ``self``."""
         self.validate = bool(flag)
@@ -349,6 +383,8 @@ class DFDModel(nn.Module):
                 "correction_scale": self.correction_scale, "context": self.context,
                 "magnification_per_dpt": self.magnification_per_dpt, "psf_family_input": self.psf_family_input,
                 "psf_family": self.psf_family, "scale_calibration": self.scale_calibration.to_config(),
+                "structure_pooling": None if self.structure_pooling is None else self.structure_pooling.to_config(),
+                "pooled_scale_calibration": self.pooled_scale_calibration.to_config(),
                 "refine": {k: v for k, v in self.refine.config().items() if k not in ("in_channels", "out_channels")}}
 
     # ------------------------------------------------------------------ compute
@@ -398,7 +434,7 @@ class DFDModel(nn.Module):
 
     def head(self, features: torch.Tensor, inverse_depth: torch.Tensor, rel_error: torch.Tensor
              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The learned stage on precomputed features.
+        """The learned stage on precomputed features, then the structure pooling if the model has it.
 
         Args:
             features: :meth:`features` output ``(B, C, h, w)``.
@@ -411,11 +447,19 @@ class DFDModel(nn.Module):
             log Laplace scale of the relative error, the confidence, and the clamped
             analytic inverse depth.
         """
-        return self.head_with_family(features, inverse_depth, rel_error)[:4]
+        q, log_scale, conf, q_a, _ = self.head_with_family(features, inverse_depth, rel_error)
+        if self.structure_pooling is None:
+            return q, log_scale, conf, q_a
+        q_lo, q_hi = self.analytic.inv_depth_limits
+        q = self.structure_pooling(q, torch.exp(log_scale)).clamp(q_lo, q_hi)
+        log_scale = self.pooled_scale_calibration(log_scale, q).clamp(*_LOG_SCALE_BOUNDS)
+        ratio = torch.exp(log_scale) / self.confidence_scale
+        return q, log_scale, 1.0 / (1.0 + ratio * ratio), q_a
 
     def head_with_family(self, features: torch.Tensor, inverse_depth: torch.Tensor, rel_error: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """:meth:`head`'s four outputs and, from the same pass, the image-wide PSF family logits
+        """The CNN stage as trained (:meth:`head` without the structure pooling): its four outputs
+        and, from the same pass, the image-wide PSF family logits
         ``(B, 3)`` over :data:`~tdfd.model.family_inference.FAMILY_CLASSES` (``None`` for a CNN
         without ``family_inference``): what training supervises."""
         wdt = self.refine.head.weight.dtype
@@ -517,6 +561,8 @@ class DFDModel(nn.Module):
                        context=cfg.get("context", 1), magnification_per_dpt=cfg.get("magnification_per_dpt", 0.0),
                        psf_family_input=cfg.get("psf_family_input", False), psf_family=cfg.get("psf_family"),
                        scale_calibration=cfg.get("scale_calibration"),
+                       structure_pooling=cfg.get("structure_pooling"),
+                       pooled_scale_calibration=cfg.get("pooled_scale_calibration"),
                        **cfg["refine"])
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelError(f"invalid model description: {exc!r}") from exc
