@@ -144,13 +144,9 @@ def test_bad_shapes_are_named():
         StructurePooling.from_config({"radius": 2, "sigma": 1.0})
 
 
-def _pair(model: DFDModel, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    return realistic_pairs(model.camera, 2, 224, 288, seed=seed)
-
-
 def test_model_pools_its_own_depth_and_calibrates_the_pooled_scale(tmp_path):
     model = make_test_model(0).eval()
-    i1, i2 = _pair(model)
+    i1, i2 = realistic_pairs(model.camera, 2, 224, 288, seed=0)  # a 6x8 tile grid
     with torch.no_grad():
         plain = model.analyse(i1, i2)
         model.set_structure_pooling({"radius": 2, "ridge": 0.05},
