@@ -12,7 +12,7 @@ import torch
 from export import export_model, realistic_pairs, verify_onnx
 from export.testing import make_test_model
 from tdfd import Camera
-from tdfd.errors import InputError, ModelError, ShapeError
+from tdfd.errors import InputError, ModelError, NonFiniteError, RangeError, ShapeError
 from tdfd.model import DFDModel
 from tdfd.model.scale_calibration import ScaleCalibration
 from tdfd.model.structure_pooling import StructurePooling, pool_inverse_depth
@@ -133,6 +133,16 @@ def test_bad_options_are_named(kw, match):
         pool_inverse_depth(q, q, **kw)
     with pytest.raises(InputError, match=match):
         StructurePooling(**kw)
+
+
+@pytest.mark.parametrize("q_value, b_value, error, match", [
+    (math.nan, 0.01, NonFiniteError, "finite"), (1.5, math.inf, NonFiniteError, "finite"),
+    (0.0, 0.01, RangeError, "> 0"), (-1.0, 0.01, RangeError, "> 0"), (1.5, -0.01, RangeError, "scale >= 0")])
+def test_bad_values_are_named(q_value, b_value, error, match):
+    q, b = torch.full((1, 1, 4, 4), 1.5), torch.full((1, 1, 4, 4), 0.01)
+    q[..., 2, 1], b[..., 1, 2] = q_value, b_value
+    with pytest.raises(error, match=match):
+        pool_inverse_depth(q, b)
 
 
 def test_bad_shapes_are_named():

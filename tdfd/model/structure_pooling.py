@@ -46,7 +46,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..errors import InputError, ShapeError
+from .._tracing import is_exporting
+from ..errors import InputError, NonFiniteError, RangeError, ShapeError
 
 __all__ = ["pool_inverse_depth", "StructurePooling", "POOLING_KEYS"]
 
@@ -117,12 +118,19 @@ def pool_inverse_depth(inverse_depth: torch.Tensor, scale: torch.Tensor, radius:
 
     Raises:
         ShapeError: the two inputs are not equal ``(B, 1, h, w)`` tensors.
+        NonFiniteError: a NaN or infinite value in either input.
+        RangeError: an inverse depth <= 0 or a negative scale.
         InputError: an option out of its range.
     """
     if inverse_depth.dim() != 4 or inverse_depth.shape[1] != 1 or scale.shape != inverse_depth.shape:
         raise ShapeError(f"inverse_depth and scale must be equal (B, 1, h, w) tensors, got "
                          f"{tuple(inverse_depth.shape)} and {tuple(scale.shape)}")
     _check_options(radius, degree, kernel_width, iterations, scale_floor, ridge)
+    if not is_exporting():
+        if not bool(torch.isfinite(inverse_depth).all() and torch.isfinite(scale).all()):
+            raise NonFiniteError("inverse_depth and scale must be finite (NaN or inf found)")
+        if not bool((inverse_depth > 0).all() and (scale >= 0).all()):
+            raise RangeError("inverse_depth must be > 0 (1/m) and scale >= 0")
     q, b = inverse_depth, scale
     side = 2 * radius + 1
     design = _design(radius, degree, q.dtype).to(q.device)  # (S, P)
