@@ -8,8 +8,9 @@ import math
 import pytest
 import torch
 
-from benchmarks.bench_bound import plane_fisher, tile_fisher
+from benchmarks.bench_bound import median_at_bound, plane_fisher, tile_fisher
 from benchmarks.bench_onnx import latency_ratio
+from benchmarks.bench_structure import largest_share
 from benchmarks.depth_edges import depth_discontinuities, edge_tiles, tile_depth_spread
 from benchmarks.depth_models import predicted_scale
 from benchmarks.uncertainty import decile_table, laplace_mixture_median, scene_bootstrap
@@ -283,3 +284,14 @@ def test_tile_depth_spread_zero_on_a_plane_and_exact_on_a_ramp():
         tile_depth_spread(torch.zeros(96, 160), 64, 32)
     with pytest.raises(InputError, match="smaller"):
         tile_depth_spread(plane[:32], 64, 32)
+
+
+def test_largest_share_of_the_best_tiles_within_a_median():
+    sigma = torch.tensor([0.005] * 40 + [0.2] * 60, dtype=torch.float64)  # sorted, the best first
+    share = largest_share(lambda k: median_at_bound(sigma[:k]), 100, 0.01)
+    # 40 tiles at 0.5 % have a median of 0.34 %; each tile at 20 % added pushes it up, past 1 % at the 80th
+    assert share == pytest.approx(0.79)
+    assert median_at_bound(sigma[:round(100 * share)]) <= 0.01 < median_at_bound(sigma[:round(100 * share) + 1])
+    assert largest_share(lambda k: median_at_bound(sigma[:k]), 100, 0.001) == 0.0  # not even the best tile
+    assert largest_share(lambda k: median_at_bound(sigma[:k]), 100, 1.0) == 1.0
+    assert largest_share(lambda k: 0.0, 0, 0.01) == 0.0
