@@ -453,8 +453,7 @@ class DFDModel(nn.Module):
         q_lo, q_hi = self.analytic.inv_depth_limits
         q = self.structure_pooling(q, torch.exp(log_scale)).clamp(q_lo, q_hi)
         log_scale = self.pooled_scale_calibration(log_scale, q).clamp(*_LOG_SCALE_BOUNDS)
-        ratio = torch.exp(log_scale) / self.confidence_scale
-        return q, log_scale, 1.0 / (1.0 + ratio * ratio), q_a
+        return q, log_scale, self._confidence(log_scale), q_a
 
     def head_with_family(self, features: torch.Tensor, inverse_depth: torch.Tensor, rel_error: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
@@ -469,8 +468,12 @@ class DFDModel(nn.Module):
         q = (q_a + self.correction_scale * out[:, 0:1]).clamp(q_lo, q_hi)
         base = torch.log(rel_error.to(wdt).clamp_min(1e-6)).clamp(*_LOG_REL_BOUNDS)
         log_scale = self.scale_calibration((base + out[:, 1:2]).clamp(*_LOG_SCALE_BOUNDS), q).clamp(*_LOG_SCALE_BOUNDS)
+        return q, log_scale, self._confidence(log_scale), q_a, family_logits
+
+    def _confidence(self, log_scale: torch.Tensor) -> torch.Tensor:
+        """``conf = 1 / (1 + (b / b0)^2)`` of the log Laplace scale ``log b`` (module docstring)."""
         ratio = torch.exp(log_scale) / self.confidence_scale
-        return q, log_scale, 1.0 / (1.0 + ratio * ratio), q_a, family_logits
+        return 1.0 / (1.0 + ratio * ratio)
 
     def analyse(self, image_f1: torch.Tensor, image_f2: torch.Tensor, psf_family_codes: torch.Tensor | None = None
                 ) -> RefinedResult:

@@ -40,6 +40,7 @@ Example:
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -149,7 +150,6 @@ def pool_inverse_depth(inverse_depth: torch.Tensor, scale: torch.Tensor, radius:
     ridge_m = ridge_m.reshape(1, n_par, n_par, 1, 1)
     centre_index = (side * side) // 2
     fit = q.expand(-1, side * side, -1, -1)
-    centre = q
     for _ in range(iterations):
         z = (q_win - fit) / width
         weight = precision * (torch.exp(-0.5 * z * z) + 1e-6)
@@ -158,8 +158,7 @@ def pool_inverse_depth(inverse_depth: torch.Tensor, scale: torch.Tensor, radius:
         right = F.conv2d(weight * (q_win - q), rhs_k).unsqueeze(2)  # relative to the centre: small numbers
         coeffs = _solve_spd(torch.cat([matrix, right], 2))
         fit = q + F.conv2d(coeffs, predict_k)
-        centre = fit[:, centre_index:centre_index + 1]
-    return centre
+    return fit[:, centre_index:centre_index + 1]
 
 
 def _check_options(radius: int, degree: int, kernel_width: float, iterations: int, scale_floor: float,
@@ -173,7 +172,7 @@ def _check_options(radius: int, degree: int, kernel_width: float, iterations: in
     if not kernel_width > 0 or not scale_floor > 0 or not ridge >= 0:
         raise InputError(f"pooling needs kernel_width > 0, scale_floor > 0 and ridge >= 0, got {kernel_width!r}, "
                          f"{scale_floor!r}, {ridge!r}")
-    if not all(map(lambda v: float(v) < float("inf"), (kernel_width, scale_floor, ridge))):
+    if not all(math.isfinite(float(v)) for v in (kernel_width, scale_floor, ridge)):
         raise InputError("pooling options must be finite")
 
 
