@@ -202,7 +202,8 @@ def onnx_refiner(model_path: Path, psf_family: str | None = "exported"):
     :func:`tdfd.autofocus.lit_tiles.pool_lit_tiles` (a confidence-weighted median and trimmed
     mean of inverse depth) and fused with the one-region fit as two correlated estimates
     (:func:`tdfd.autofocus.lit_tiles.fuse_with_region`, the controller's step 3: the tiles'
-    uncertainty from their confidences, :func:`tdfd.autofocus.evidence.estimate_uncertainty`;
+    standard deviation from their confidences, the Laplace scale counting sqrt(2) times,
+    :attr:`tdfd.autofocus.evidence.FocusUncertainty.std_dpt`;
     the region's from its statistics, ``mu``'s calibration and the PSF family,
     :func:`tdfd.region_fusion.region_sigma_dpt`; the region's statistical error, the noise of
     the pixels the tiles also see, is their covariance). With no lit tile the region stands.
@@ -229,7 +230,7 @@ def onnx_refiner(model_path: Path, psf_family: str | None = "exported"):
             return 1.0 / region.inverse_depth, "region"
         if cue_touches_border(lit.used, np.ones_like(lit.used)):  # the pattern reaches the field's edge
             return lit.pooled.depth_m, "model"
-        sigma = estimate_uncertainty(lit.pooled, lit.confidence, lit.used, rt.camera, b0).sigma_dpt
+        sigma = estimate_uncertainty(lit.pooled, lit.confidence, lit.used, rt.camera, b0).std_dpt
         fused, weight = fuse_with_region(lit.pooled, sigma, region)
         return fused.depth_m, "region" if weight > 0.9 else "model"
 

@@ -359,7 +359,8 @@ class AssistedDFDController(DFDController):
             except TdfdError as exc:  # a small ROI, odd frames, no minimum in range: the tiles alone
                 log.info("no region fit: %s", exc)
                 return agg, pooled
-            sigma = estimate_uncertainty(agg, obs.confidence, pooled, self.camera, self.confidence_scale).sigma_dpt
+            # a standard deviation: the model's Laplace scale counts sqrt(2) times (FocusUncertainty.std_dpt)
+            sigma = estimate_uncertainty(agg, obs.confidence, pooled, self.camera, self.confidence_scale).std_dpt
             self.result.region_fits += 1
             self.result.disk_region_fits += region.fit_family == "pillbox"
             fused, lit.region_weight = fuse_with_region(agg, sigma, region)

@@ -39,6 +39,7 @@ from .roi import Roi
 from .sharpness import noise_variance, sharpness
 
 __all__ = [
+    "LAPLACE_STD_PER_SCALE",
     "blur_px_per_dpt",
     "sigma_px_per_dpt",
     "working_powers_dpt",
@@ -75,6 +76,10 @@ def working_powers_dpt(camera: Camera, margin_dpt: float = 0.15) -> tuple[float,
     return in_focus_power_dpt(camera, far) - margin_dpt, in_focus_power_dpt(camera, near) + margin_dpt
 
 
+#: standard deviation of a Laplace distribution per unit of its scale ``b``: ``sqrt(2)``
+LAPLACE_STD_PER_SCALE = math.sqrt(2.0)
+
+
 def sigma_px_per_dpt(camera: Camera) -> float:
     """Gaussian PSF standard deviation (px) per dioptre of focus error: ``M = mu (A/2) d_s`` (paper eq. 7)."""
     return camera.mu_px_per_m * camera.blur_scale_m_dpt
@@ -107,6 +112,9 @@ class FocusUncertainty:
         spread_dpt: the inlier tiles' disagreement (weighted standard deviation, 1/m).
         sigma_dpt: ``sqrt(model_dpt^2 + spread_dpt^2)`` (dpt).
         blur_px: ``sigma_dpt`` as a geometric blur radius (px).
+
+    ``model_dpt`` is a Laplace scale ``b``, not a standard deviation: :attr:`std_dpt` is the
+    standard deviation a weighted mean with another estimate needs.
     """
 
     relative_error: float
@@ -114,6 +122,21 @@ class FocusUncertainty:
     spread_dpt: float
     sigma_dpt: float
     blur_px: float
+
+    @property
+    def std_dpt(self) -> float:
+        """The estimate's standard deviation (dpt): ``sqrt(2 model_dpt^2 + spread_dpt^2)``.
+
+        The model's scale is the Laplace ``b`` it was trained and calibrated as (median
+        ``|e| = b ln 2``), whose standard deviation is ``sqrt(2) b``; the spread is already a
+        standard deviation. What a fusion with another estimate (variances, a discrepancy in
+        standard deviations: :func:`tdfd.autofocus.lit_tiles.fuse_with_region`) needs.
+
+        Example:
+            >>> round(FocusUncertainty(0.05, 0.05, 0.0, 0.05, 0.1).std_dpt, 4)
+            0.0707
+        """
+        return math.hypot(LAPLACE_STD_PER_SCALE * self.model_dpt, self.spread_dpt)
 
 
 def estimate_uncertainty(aggregate: DepthAggregate, confidence: np.ndarray, mask: np.ndarray, camera: Camera,

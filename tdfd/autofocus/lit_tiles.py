@@ -180,8 +180,9 @@ def fuse_with_region(pooled: DepthAggregate, tiles_sigma_dpt: float, region: Reg
                      max_discrepancy: float = 3.0) -> tuple[DepthAggregate, float]:
     """The lit ROI's depth from its pooled tiles and one region fit together (:mod:`tdfd.region_fusion`).
 
-    The pooled tiles' inverse depth (uncertainty ``tiles_sigma_dpt``, e.g.
-    :func:`tdfd.autofocus.evidence.estimate_uncertainty`) and the region's are combined as
+    The pooled tiles' inverse depth (standard deviation ``tiles_sigma_dpt``: with a model's
+    tiles :attr:`tdfd.autofocus.evidence.FocusUncertainty.std_dpt`, where the model's Laplace
+    scale counts sqrt(2) times) and the region's are combined as
     two correlated estimates: the tiles' pixels are the region's, so the region's statistical
     error (:attr:`~tdfd.region_fusion.RegionFit.noise_sigma_dpt`, capped at the tiles' own) is
     their covariance (:mod:`tdfd.region_fusion`); tiles noisier than that add only where the
@@ -194,7 +195,7 @@ def fuse_with_region(pooled: DepthAggregate, tiles_sigma_dpt: float, region: Reg
 
     Args:
         pooled: :func:`pool_lit_tiles`'s aggregate (a NaN depth: no lit tile, the region alone).
-        tiles_sigma_dpt: its standard uncertainty (dpt; ``inf``: no weight).
+        tiles_sigma_dpt: its standard deviation (dpt; ``inf``: no weight).
         region: :func:`tdfd.dfd.region_fit.fit_region` over the ROI.
         max_discrepancy: the disagreement (in standard deviations of the difference) beyond
             which the region is left out.
