@@ -130,7 +130,9 @@ class FocusUncertainty:
         The model's scale is the Laplace ``b`` it was trained and calibrated as (median
         ``|e| = b ln 2``), whose standard deviation is ``sqrt(2) b``; the spread is already a
         standard deviation. What a fusion with another estimate (variances, a discrepancy in
-        standard deviations: :func:`tdfd.autofocus.lit_tiles.fuse_with_region`) needs.
+        standard deviations: :func:`tdfd.autofocus.lit_tiles.fuse_with_region`) needs. For the
+        analytic estimator alone, whose scale is its predicted error (a standard deviation),
+        this is ``sqrt(2)`` wide: a fusion then leans towards the other estimate.
 
         Example:
             >>> round(FocusUncertainty(0.05, 0.05, 0.0, 0.05, 0.1).std_dpt, 4)
