@@ -295,3 +295,66 @@ def test_largest_share_of_the_best_tiles_within_a_median():
     assert largest_share(lambda k: median_at_bound(sigma[:k]), 100, 0.001) == 0.0  # not even the best tile
     assert largest_share(lambda k: median_at_bound(sigma[:k]), 100, 1.0) == 1.0
     assert largest_share(lambda k: 0.0, 0, 0.01) == 0.0
+
+
+def test_scene_intervals_widen_when_few_scenes_carry_the_tiles():
+    """1000 tiles whose errors follow their scene's level: held by 5 scenes, the median's
+    interval over the scenes is much wider than held by 50, and much wider than a bootstrap
+    that takes every tile for its own scene; the concentration names the largest scenes' share."""
+    from benchmarks.bench_structure import TOP_SCENES, scene_intervals
+
+    g = torch.Generator().manual_seed(4)
+
+    def tiles(scenes: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        level = torch.exp(torch.empty(scenes, dtype=torch.float64).uniform_(-5.0, -2.0, generator=g))
+        scene = torch.arange(scenes).repeat_interleave(1000 // scenes)
+        err = level[scene] * (1.0 + 0.1 * torch.rand(1000, generator=g, dtype=torch.float64))
+        return err, torch.where(err < 0.02, 0.8, 0.1), scene
+
+    def width(r: dict) -> float:
+        return r["refined_hi"] - r["refined_lo"]
+
+    err5, conf5, scene5 = tiles(5)
+    r5 = scene_intervals(err5, conf5, scene5, reps=300)
+    r50 = scene_intervals(*tiles(50), reps=300)
+    per_tile = scene_intervals(err5, conf5, torch.arange(1000), reps=300)
+    assert r5["scenes"] == 5 and r50["scenes"] == 50 and per_tile["scenes"] == 1000
+    assert width(r5) > 2.0 * width(r50) and width(r5) > 3.0 * width(per_tile)
+    assert r5["refined_lo"] <= float(err5.median()) <= r5["refined_hi"]
+    assert 0.0 <= r5["share_lo"] < r5["share_hi"] <= 1.0
+    assert r50["top_scenes_share"] == pytest.approx(TOP_SCENES / 50)
+    uneven = torch.cat([torch.zeros(620, dtype=torch.long), torch.arange(1, 20).repeat_interleave(20)])
+    r = scene_intervals(err5, conf5, uneven, reps=10)
+    assert r["top_scenes_share"] == pytest.approx((620 + 20 * (TOP_SCENES - 1)) / 1000)
+    with pytest.raises(ValueError, match="equal non-empty"):
+        scene_intervals(err5, conf5[:-1], scene5)
+
+
+def test_merged_layouts_keep_their_scenes_apart():
+    """Scene 0 of one layout and scene 0 of another are two scenes in the summary of all layouts."""
+    from benchmarks.bench_structure import merge_layouts, summarise_structure
+
+    t = torch.full((4,), 0.5)
+    one = {"true": t, "refined": t * 1.02, "analytic": t, "confidence": torch.zeros(4),
+           "edge": torch.zeros(4, dtype=torch.bool), "scene": torch.tensor([0, 0, 1, 1])}
+    merged = merge_layouts({"slanted": one, "layout": dict(one, refined=t * 1.04)})
+    assert merged["refined"].shape == (8,) and merged["scene"].unique().numel() == 4
+    assert summarise_structure(merged, (0.3, 1.0), reps=20)["interior"]["scenes"] == 4
+    assert "refined_lo" not in summarise_structure(one, (0.3, 1.0), reps=0)["interior"]
+
+
+def test_worker_processes_collect_the_same_tiles_in_the_same_order():
+    """``--jobs``: the scenes split over spawned processes give the tiles one process gives."""
+    from benchmarks.bench_structure import collect_layouts
+    from benchmarks.depth_models import load_depth_model
+    from benchmarks.report import ROOT
+
+    path = str(ROOT / "models" / "reference")
+    model = load_depth_model(path, threads=1)
+    one = collect_layouts(model, path, 3, (192, 256), bound=False, told=False, jobs=1)
+    split = collect_layouts(model, path, 3, (192, 256), bound=False, told=False, jobs=2)
+    assert list(split) == list(one)
+    for lay in one:
+        assert one[lay]["scene"].unique().tolist() == [0, 1, 2]
+        for k in one[lay]:
+            torch.testing.assert_close(split[lay][k], one[lay][k], msg=f"{lay} {k}")
