@@ -223,6 +223,8 @@ def collect_layouts(model: DepthModel, path: str, scenes: int, size: tuple[int, 
              for a in range(0, scenes, per)]
     with multiprocessing.get_context("spawn").Pool(jobs) as pool:
         results = pool.map(_collect_part, parts, chunksize=1)
+        pool.close()  # let the workers exit on their own (the context's terminate would kill them)
+        pool.join()
     out: dict[str, dict[str, torch.Tensor]] = {}
     for lay in STRUCTURE_LAYOUTS:
         mine = [r for job, r in zip(parts, results) if job[1] == lay]

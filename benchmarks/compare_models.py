@@ -1,6 +1,6 @@
 """Paired A/B of two depth models on the same held-out scenes, with the scenes' sampling error.
 
-    .venv/bin/python -m benchmarks.compare_models OLD NEW [--planes 1024] [--scenes 32]
+    .venv/bin/python -m benchmarks.compare_models OLD NEW [--planes 1024] [--scenes 128] [--jobs 1]
 
 A model is a :meth:`tdfd.model.DFDModel.save` stem or an ``.onnx`` file
 (:func:`benchmarks.depth_models.load_depth_model`). Both run on the refinement benchmark's
@@ -9,6 +9,10 @@ structure benchmark's first ``--scenes`` scenes per layout (480x640, seed 53 000
 tiles away from occlusion edges). The tiles of one scene share its texture, PSF and sensor, so
 the medians scatter by scene, not by tile: every difference comes with a bootstrap over the
 scenes (the same resampled scenes for both models, so the difference is paired).
+
+The structure rows took 32 scenes per layout until 2026-11-27 (evening); a few large scenes
+carried them (``models/README.md``, "How many structure scenes"), so the default is 128, and
+``--jobs`` spreads those scenes over processes.
 
 Why: the refinement benchmark's 256-plane per-tile median carries about 0.1 points of that
 sampling error, as much as a retrain changes it (2026-11-26 night: 2.11 -> 2.24 % on 256
@@ -24,7 +28,7 @@ import sys
 
 import torch
 
-from benchmarks.bench_structure import collect_structure
+from benchmarks.bench_structure import collect_layouts
 from benchmarks.bench_uncertainty import plane_tiles
 from benchmarks.depth_models import DepthModel, load_depth_model
 from benchmarks.report import markdown_table
@@ -114,11 +118,17 @@ def _rel(depth: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
     return (depth.double() - true.double()).abs() / true.double()
 
 
-def compare(model_a: DepthModel, model_b: DepthModel, planes: int = 1024, scenes: int = 32, reps: int = 200,
-            seed: int = 0) -> list[tuple[str, dict[str, float]]]:
+def compare(model_a: DepthModel, model_b: DepthModel, planes: int = 1024, scenes: int = 128, reps: int = 200,
+            seed: int = 0, jobs: int = 1, paths: tuple[str, str] | None = None) -> list[tuple[str, dict[str, float]]]:
     """The paired comparisons: planes per tile (all tiles, then the tiles on the edge of the
     grid and those inside it) and per plane, each structure layout and all layouts per tile
-    away from edges. Rows of ``(name, result)``."""
+    away from edges. Rows of ``(name, result)``.
+
+    With ``jobs > 1`` the structure scenes are spread over that many processes
+    (:func:`benchmarks.bench_structure.collect_layouts`), which load the models from ``paths``
+    (A's, B's)."""
+    if jobs > 1 and paths is None:
+        raise ValueError("jobs > 1 needs the models' paths, which the worker processes load")
     if model_a.camera.depth_range_m != model_b.camera.depth_range_m:
         raise ValueError("the two models' cameras have different working ranges: not the same benchmark")
     near, far = model_a.camera.depth_range_m
@@ -141,9 +151,13 @@ def compare(model_a: DepthModel, model_b: DepthModel, planes: int = 1024, scenes
             ta["refined"][sel], tb["refined"][sel], ta["true"][sel], ta["scene"][sel], reps, gen)))
     if scenes > 0:
         all_a, all_b, all_g = [], [], []
+        path_a, path_b = paths if paths is not None else ("", "")
+        struct_a = collect_layouts(model_a, path_a, scenes, (480, 640), bound=False, told=False, jobs=jobs)
+        struct_b = collect_layouts(model_b, path_b, scenes, (480, 640), bound=False, told=False, jobs=jobs)
         for n, layout in enumerate(STRUCTURE_LAYOUTS):
-            sa = collect_structure(model_a, layout, scenes, (480, 640))
-            sb = collect_structure(model_b, layout, scenes, (480, 640))
+            sa, sb = struct_a[layout], struct_b[layout]
+            if not torch.equal(sa["true"], sb["true"]):
+                raise ValueError("the two models' structure tiles differ: not the same tiles")
             keep = ~sa["edge"] & (sa["true"] >= near) & (sa["true"] <= far)
             ea, eb, g = _rel(sa["refined"], sa["true"])[keep], _rel(sb["refined"], sb["true"])[keep], sa["scene"][keep]
             rows.append((f"{layout} ({scenes} scenes), away from edges", paired_tile_median(ea, eb, g, reps, gen)))
@@ -158,17 +172,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("model_a", help="model A (the baseline): stem or .onnx")
     p.add_argument("model_b", help="model B: stem or .onnx")
     p.add_argument("--planes", type=int, default=1024, help="textured planes (0: none)")
-    p.add_argument("--scenes", type=int, default=32, help="structure scenes per layout (0: none)")
+    p.add_argument("--scenes", type=int, default=128, help="structure scenes per layout (0: none)")
+    p.add_argument("--jobs", type=int, default=1, help="worker processes for the structure scenes (same tiles as 1)")
     p.add_argument("--reps", type=int, default=200, help="bootstrap resamples of the scenes")
     p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap")
     p.add_argument("--threads", type=int, default=2, help="torch / ONNX Runtime threads")
     args = p.parse_args(argv)
-    if args.planes < 0 or args.scenes < 0 or args.reps < 2 or (args.planes == 0 and args.scenes == 0):
-        p.error("--planes and --scenes must be >= 0 and not both 0; --reps >= 2")
+    if args.planes < 0 or args.scenes < 0 or args.reps < 2 or (args.planes == 0 and args.scenes == 0) or args.jobs < 1:
+        p.error("--planes and --scenes must be >= 0 and not both 0; --reps >= 2; --jobs >= 1")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     torch.set_num_threads(args.threads)
     a, b = load_depth_model(args.model_a, args.threads), load_depth_model(args.model_b, args.threads)
-    rows = compare(a, b, args.planes, args.scenes, args.reps, args.seed)
+    rows = compare(a, b, args.planes, args.scenes, args.reps, args.seed, args.jobs, (args.model_a, args.model_b))
     table = [[name, f"{100 * r['a']:.3f} %", f"{100 * r['b']:.3f} %",
               f"{100 * r['diff']:+.3f} +- {100 * r['se']:.3f}", f"{100 * r['lo']:+.3f} .. {100 * r['hi']:+.3f}"]
              for name, r in rows]

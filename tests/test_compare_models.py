@@ -46,3 +46,21 @@ def test_mismatched_inputs_are_refused():
         paired_tile_median(torch.ones(3), torch.ones(4), torch.zeros(3))
     with pytest.raises(ValueError, match="no tiles"):
         paired_tile_median(torch.ones(0), torch.ones(0), torch.zeros(0))
+
+
+def test_structure_rows_are_the_same_from_worker_processes():
+    """``--jobs``: the structure scenes spread over processes give the rows one process gives;
+    the workers need the models' paths."""
+    from benchmarks.compare_models import compare
+    from benchmarks.depth_models import load_depth_model
+    from benchmarks.report import ROOT
+
+    path = str(ROOT / "models" / "reference")
+    model = load_depth_model(path, threads=1)
+    one = compare(model, model, planes=0, scenes=2, reps=20)
+    split = compare(model, model, planes=0, scenes=2, reps=20, jobs=2, paths=(path, path))
+    assert [name for name, _ in one] == [name for name, _ in split] and len(one) == 4
+    for (_, r1), (_, r2) in zip(one, split):
+        assert r1 == r2 and r1["diff"] == 0.0
+    with pytest.raises(ValueError, match="paths"):
+        compare(model, model, planes=0, scenes=2, jobs=2)
