@@ -215,7 +215,8 @@ def collect_layouts(model: DepthModel, path: str, scenes: int, size: tuple[int, 
                     jobs: int = 1) -> dict[str, dict[str, torch.Tensor]]:
     """:func:`collect_structure` for every layout of :data:`training.data.STRUCTURE_LAYOUTS`;
     with ``jobs > 1`` the scenes are split into runs of consecutive scenes over that many
-    spawned processes (each loads ``path`` itself), and the runs are joined in scene order."""
+    spawned processes (each loads ``path`` itself, with :func:`~benchmarks.depth_models.load_depth_model`'s
+    defaults: a torch model with its scale calibration), and the runs are joined in scene order."""
     if jobs <= 1:
         return {lay: collect_structure(model, lay, scenes, size, bound=bound, told=told) for lay in STRUCTURE_LAYOUTS}
     per = max(1, math.ceil(scenes * len(STRUCTURE_LAYOUTS) / (2 * jobs)))  # about two runs per worker
