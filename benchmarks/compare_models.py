@@ -28,7 +28,7 @@ import sys
 
 import torch
 
-from benchmarks.bench_structure import collect_layouts
+from benchmarks.bench_structure import collect_layouts, merge_layouts
 from benchmarks.bench_uncertainty import plane_tiles
 from benchmarks.depth_models import DepthModel, load_depth_model
 from benchmarks.report import markdown_table
@@ -150,20 +150,17 @@ def compare(model_a: DepthModel, model_b: DepthModel, planes: int = 1024, scenes
         rows.append((f"textured planes ({planes}), per plane", paired_group_median(
             ta["refined"][sel], tb["refined"][sel], ta["true"][sel], ta["scene"][sel], reps, gen)))
     if scenes > 0:
-        all_a, all_b, all_g = [], [], []
         path_a, path_b = paths if paths is not None else ("", "")
         struct_a = collect_layouts(model_a, path_a, scenes, (480, 640), bound=False, told=False, jobs=jobs)
         struct_b = collect_layouts(model_b, path_b, scenes, (480, 640), bound=False, told=False, jobs=jobs)
-        for n, layout in enumerate(STRUCTURE_LAYOUTS):
-            sa, sb = struct_a[layout], struct_b[layout]
-            if not torch.equal(sa["true"], sb["true"]):
-                raise ValueError("the two models' structure tiles differ: not the same tiles")
+        if any(not torch.equal(struct_a[lay]["true"], struct_b[lay]["true"]) for lay in STRUCTURE_LAYOUTS):
+            raise ValueError("the two models' structure tiles differ: not the same tiles")
+        sets = [(f"{lay} ({scenes} scenes)", struct_a[lay], struct_b[lay]) for lay in STRUCTURE_LAYOUTS]
+        sets.append(("all layouts", merge_layouts(struct_a), merge_layouts(struct_b)))  # scenes kept apart
+        for name, sa, sb in sets:
             keep = ~sa["edge"] & (sa["true"] >= near) & (sa["true"] <= far)
-            ea, eb, g = _rel(sa["refined"], sa["true"])[keep], _rel(sb["refined"], sb["true"])[keep], sa["scene"][keep]
-            rows.append((f"{layout} ({scenes} scenes), away from edges", paired_tile_median(ea, eb, g, reps, gen)))
-            all_a.append(ea), all_b.append(eb), all_g.append(g + n * scenes)
-        rows.append(("all layouts, away from edges", paired_tile_median(
-            torch.cat(all_a), torch.cat(all_b), torch.cat(all_g), reps, gen)))
+            ea, eb = _rel(sa["refined"], sa["true"])[keep], _rel(sb["refined"], sb["true"])[keep]
+            rows.append((f"{name}, away from edges", paired_tile_median(ea, eb, sa["scene"][keep], reps, gen)))
     return rows
 
 
