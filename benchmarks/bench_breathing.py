@@ -70,7 +70,7 @@ def errors(model: DFDModel, frames: list[torch.Tensor], depths: list[float]) -> 
     ref, ana = [], []
     with torch.no_grad():
         for f, d in zip(frames, depths):
-            depth, _, depth_a = model(f[:, 0:1], f[:, 1:2])
+            depth, _, depth_a = model(f[:, 0:1], f[:, 1:2])[:3]
             ref.append(((depth - d).abs() / d).flatten())
             ana.append(((depth_a - d).abs() / d).flatten())
     return {"refined": float(torch.cat(ref).median()), "analytic": float(torch.cat(ana).median())}

@@ -128,6 +128,10 @@ def _summary(name: str, table: list[dict]) -> list[object]:
             f"{worst['ratio']:.2f} +- {worst['ratio_se']:.2f}", "yes" if all(r["ok"] for r in table) else "**no**"]
 
 
+#: the label of a pooling model's tiles (its contract ``confidence``, which the autofocus reads)
+TILES_LABEL = "each tile's own (autofocus): "
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--model", default=str(ROOT / "models" / "reference"),
@@ -140,13 +144,17 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     torch.set_num_threads(2)
     model = load_depth_model(args.model)
+    # a model with the structure pooling: its pooled map first, then each tile's own (what the autofocus reads)
+    tiles = load_depth_model(args.model, output="tiles") if model.pooled else None
     raw = None
     if not str(args.model).endswith(".onnx"):
         if DFDModel.read_description(args.model).get("scale_calibration"):
             raw = load_depth_model(args.model, calibrated=False)
     t0 = time.perf_counter()
     sets: dict[str, tuple[DepthModel, dict, torch.Tensor | None]] = {}
-    for label, m in (("", model),) + ((("CNN's own scale: ", raw),) if raw is not None else ()):
+    runs = [("", model)] + ([(TILES_LABEL, tiles)] if tiles is not None else []) + (
+        [("CNN's own scale: ", raw)] if raw is not None else [])
+    for label, m in runs:
         planes = plane_tiles(m, args.planes, args.size)
         structure = structure_tiles(m, args.scenes)
         sets.update({f"{label}textured planes": (m, planes, None), f"{label}structure scenes, all tiles":
@@ -178,7 +186,12 @@ def main(argv: list[str] | None = None) -> int:
         f"Scene sets: the refinement benchmark's first {args.planes} held-out textured planes ({args.size}x{args.size}, "
         f"seed {BENCH_SEED}, tiles in the working range); the structure benchmark's first {args.scenes} scenes per "
         f"layout ({', '.join(STRUCTURE_LAYOUTS)}; 480x640, seed {STRUCTURE_SEED}), all tiles in the working range "
-        "and apart those away from occlusion edges.\n\n"
+        "and apart those away from occlusion edges."
+        + (" The model pools its tiles along the depth structure (`tdfd/model/structure_pooling.py`): the first "
+           "rows score the pooled map (`depth_pooled`, `confidence_pooled`, its own scale map), the rows marked "
+           f"'{TILES_LABEL.rstrip(': ')}' each tile's own estimate (`depth`, `confidence`), which the autofocus pools."
+           if model.pooled else "")
+        + "\n\n"
         + markdown_table(["scene set", "deciles within 20 %", "deciles outside by > 2 s.e.", "ratio range",
                           "worst ratio", "met"], [_summary(n, t) for n, t in tables.items()])
         + "\n\n![calibration per confidence decile](uncertainty_calibration.png)\n")

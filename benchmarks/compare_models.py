@@ -30,7 +30,7 @@ import torch
 
 from benchmarks.bench_structure import collect_layouts, merge_layouts
 from benchmarks.bench_uncertainty import plane_tiles
-from benchmarks.depth_models import DepthModel, load_depth_model
+from benchmarks.depth_models import OUTPUTS, DepthModel, load_depth_model
 from benchmarks.report import markdown_table
 from benchmarks.uncertainty import resample_scenes
 from training.data import STRUCTURE_LAYOUTS
@@ -119,14 +119,15 @@ def _rel(depth: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
 
 
 def compare(model_a: DepthModel, model_b: DepthModel, planes: int = 1024, scenes: int = 128, reps: int = 200,
-            seed: int = 0, jobs: int = 1, paths: tuple[str, str] | None = None) -> list[tuple[str, dict[str, float]]]:
+            seed: int = 0, jobs: int = 1, paths: tuple[str, str] | None = None,
+            outputs: tuple[str, str] = ("map", "map")) -> list[tuple[str, dict[str, float]]]:
     """The paired comparisons: planes per tile (all tiles, then the tiles on the edge of the
     grid and those inside it) and per plane, each structure layout and all layouts per tile
     away from edges. Rows of ``(name, result)``.
 
     With ``jobs > 1`` the structure scenes are spread over that many processes
     (:func:`benchmarks.bench_structure.collect_layouts`), which load the models from ``paths``
-    (A's, B's)."""
+    (A's, B's) with ``outputs`` (:func:`~benchmarks.depth_models.load_depth_model`'s, as the models were loaded)."""
     if jobs > 1 and paths is None:
         raise ValueError("jobs > 1 needs the models' paths, which the worker processes load")
     if model_a.camera.depth_range_m != model_b.camera.depth_range_m:
@@ -151,8 +152,10 @@ def compare(model_a: DepthModel, model_b: DepthModel, planes: int = 1024, scenes
             ta["refined"][sel], tb["refined"][sel], ta["true"][sel], ta["scene"][sel], reps, gen)))
     if scenes > 0:
         path_a, path_b = paths if paths is not None else ("", "")
-        struct_a = collect_layouts(model_a, path_a, scenes, (480, 640), bound=False, told=False, jobs=jobs)
-        struct_b = collect_layouts(model_b, path_b, scenes, (480, 640), bound=False, told=False, jobs=jobs)
+        struct_a = collect_layouts(model_a, path_a, scenes, (480, 640), bound=False, told=False, jobs=jobs,
+                                   output=outputs[0])
+        struct_b = collect_layouts(model_b, path_b, scenes, (480, 640), bound=False, told=False, jobs=jobs,
+                                   output=outputs[1])
         if any(not torch.equal(struct_a[lay]["true"], struct_b[lay]["true"]) for lay in STRUCTURE_LAYOUTS):
             raise ValueError("the two models' structure tiles differ: not the same tiles")
         sets = [(f"{lay} ({scenes} scenes)", struct_a[lay], struct_b[lay]) for lay in STRUCTURE_LAYOUTS]
@@ -174,17 +177,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reps", type=int, default=200, help="bootstrap resamples of the scenes")
     p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap")
     p.add_argument("--threads", type=int, default=2, help="torch / ONNX Runtime threads")
+    for side in ("a", "b"):
+        p.add_argument(f"--output-{side}", choices=OUTPUTS, default="map",
+                       help=f"model {side.upper()}'s depth: 'map' (the structure-pooled map when the model has it) or "
+                            "'tiles' (each tile's own estimate); the same model with 'tiles' and 'map' measures the pooling")
     args = p.parse_args(argv)
     if args.planes < 0 or args.scenes < 0 or args.reps < 2 or (args.planes == 0 and args.scenes == 0) or args.jobs < 1:
         p.error("--planes and --scenes must be >= 0 and not both 0; --reps >= 2; --jobs >= 1")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     torch.set_num_threads(args.threads)
-    a, b = load_depth_model(args.model_a, args.threads), load_depth_model(args.model_b, args.threads)
-    rows = compare(a, b, args.planes, args.scenes, args.reps, args.seed, args.jobs, (args.model_a, args.model_b))
+    a = load_depth_model(args.model_a, args.threads, output=args.output_a)
+    b = load_depth_model(args.model_b, args.threads, output=args.output_b)
+    rows = compare(a, b, args.planes, args.scenes, args.reps, args.seed, args.jobs, (args.model_a, args.model_b),
+                   (args.output_a, args.output_b))
     table = [[name, f"{100 * r['a']:.3f} %", f"{100 * r['b']:.3f} %",
               f"{100 * r['diff']:+.3f} +- {100 * r['se']:.3f}", f"{100 * r['lo']:+.3f} .. {100 * r['hi']:+.3f}"]
              for name, r in rows]
-    print(f"A = {args.model_a}, B = {args.model_b}; median abs. rel. depth error; bootstrap over scenes "
+    print(f"A = {args.model_a} ({'pooled map' if a.pooled else 'tiles'}), B = {args.model_b} "
+          f"({'pooled map' if b.pooled else 'tiles'}); median abs. rel. depth error; bootstrap over scenes "
           f"({args.reps} resamples, seed {args.seed})\n")
     print(markdown_table(["scenes", "A", "B", "B - A (points) +- s.e.", "95 % interval"], table))
     return 0

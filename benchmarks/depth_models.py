@@ -6,6 +6,11 @@ ONNX Runtime (:meth:`tdfd.runtime.DepthRuntime.run`, the bare session: no pair c
 benchmark scores exactly what ships. Both give the depth and the confidence per tile, and the
 confidence scale ``b0`` that turns a confidence back into the model's predicted error scale
 (:func:`predicted_scale`).
+
+A model with the structure pooling has two depth maps: each tile's own estimate (the ONNX
+contract's ``depth`` and ``confidence``, which the autofocus pools) and the map pooled along the
+depth structure (:data:`tdfd.contract.POOLED_OUTPUT_NAMES`). ``output="map"`` (the default)
+scores the best depth map, the pooled one when the model has it; ``output="tiles"`` the tiles'.
 """
 
 from __future__ import annotations
@@ -21,7 +26,10 @@ from tdfd.autofocus.evidence import relative_error_scale
 from tdfd.contract import MODEL_KEY
 from tdfd.errors import InputError, ModelError
 
-__all__ = ["DepthModel", "load_depth_model", "predicted_scale"]
+__all__ = ["DepthModel", "load_depth_model", "predicted_scale", "OUTPUTS", "add_output_argument"]
+
+#: what :func:`load_depth_model` scores: the best depth map (pooled when the model pools) or each tile's own
+OUTPUTS = ("map", "tiles")
 
 
 @dataclass
@@ -39,6 +47,7 @@ class DepthModel:
             the samples' ``data_synth`` parameter dicts (:func:`tdfd.model.training_codes`, every
             Gaussian or pillbox sample told); ``None`` for a model without the family input or an
             ONNX file (whose family is one per session).
+        pooled: whether ``run`` returns the structure-pooled map (``output="map"`` on a model with it).
     """
 
     name: str
@@ -48,22 +57,37 @@ class DepthModel:
     camera: object
     run: Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
     run_told: Callable[[torch.Tensor, torch.Tensor, list], tuple[torch.Tensor, torch.Tensor, torch.Tensor]] | None = None
+    pooled: bool = False
 
 
-def load_depth_model(path: str | Path, threads: int = 2, calibrated: bool = True) -> DepthModel:
+def add_output_argument(parser) -> None:
+    """The benchmarks' ``--output map|tiles`` option (:func:`load_depth_model`'s ``output``)."""
+    parser.add_argument("--output", choices=OUTPUTS, default="map",
+                        help="which depth a model with the structure pooling is scored on: 'map' (default, the "
+                             "pooled depth map) or 'tiles' (each tile's own estimate, the ONNX contract's depth and "
+                             "confidence, what the autofocus pools); the same for a model without it")
+
+
+def load_depth_model(path: str | Path, threads: int = 2, calibrated: bool = True, output: str = "map") -> DepthModel:
     """Load ``path``: an ``.onnx`` file (ONNX Runtime) or a :meth:`tdfd.model.DFDModel.save` stem.
 
     Args:
         path: the model.
         threads: torch / ONNX Runtime threads.
         calibrated: ``False``: the torch model without its post-hoc scale calibration
-            (:mod:`tdfd.model.scale_calibration`), i.e. the CNN's own predicted scale.
+            (:mod:`tdfd.model.scale_calibration`), i.e. the CNN's own predicted scale (and
+            without the structure pooling, whose weights are that calibrated scale).
+        output: ``"map"``: the structure-pooled depth and confidence when the model has the
+            stage, else the tiles'; ``"tiles"``: each tile's own estimate.
 
     Raises:
         ModelError: missing files, an ONNX file without a positive ``confidence_scale`` in
             its ``tdfd.model`` metadata, or ``calibrated=False`` for an ONNX file (the
             calibration is part of its graph).
+        InputError: an unknown ``output``.
     """
+    if output not in OUTPUTS:
+        raise InputError(f"output must be one of {OUTPUTS}, got {output!r}")
     p = Path(path)
     if p.suffix == ".onnx":
         if not calibrated:
@@ -76,11 +100,15 @@ def load_depth_model(path: str | Path, threads: int = 2, calibrated: bool = True
         if not isinstance(b0, (int, float)) or not b0 > 0:
             raise ModelError(f"{p} has no positive confidence_scale in its {MODEL_KEY!r} metadata")
 
+        pooled = rt.has_pooled and output == "map"
+
         def run_onnx(i1: torch.Tensor, i2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-            out = rt.run(np.ascontiguousarray(i1.numpy(), np.float32), np.ascontiguousarray(i2.numpy(), np.float32))
+            a, b = np.ascontiguousarray(i1.numpy(), np.float32), np.ascontiguousarray(i2.numpy(), np.float32)
+            out = rt.run_pooled(a, b) if pooled else rt.run(a, b)
+            out = (out[3], out[4], out[2]) if pooled else out
             return tuple(torch.from_numpy(np.asarray(o)) for o in out)  # type: ignore[return-value]
 
-        return DepthModel(p.name, rt.tile, rt.stride, float(b0), rt.camera, run_onnx)
+        return DepthModel(p.name, rt.tile, rt.stride, float(b0), rt.camera, run_onnx, pooled=pooled)
 
     from tdfd.model import DFDModel, training_codes
     from tdfd.model.scale_calibration import ScaleCalibration
@@ -89,19 +117,24 @@ def load_depth_model(path: str | Path, threads: int = 2, calibrated: bool = True
     model = DFDModel.load(p).eval()
     if not calibrated:
         model.scale_calibration = ScaleCalibration()
+        model.set_structure_pooling(None)
+    pooled = model.structure_pooling is not None and output == "map"
+
+    def pick(r) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        depth, conf = r.depth_map if pooled else (r.depth, r.confidence)
+        return depth, conf, r.depth_analytic
 
     def run_torch(i1: torch.Tensor, i2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         with torch.no_grad():
-            return model(i1.float(), i2.float())
+            return pick(model.analyse(i1.float(), i2.float()))
 
     def run_told(i1: torch.Tensor, i2: torch.Tensor, params: list) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         with torch.no_grad():
-            r = model.analyse(i1.float(), i2.float(), training_codes(params, 1.0))
-        return r.depth, r.confidence, r.depth_analytic
+            return pick(model.analyse(i1.float(), i2.float(), training_codes(params, 1.0)))
 
     return DepthModel(p.with_suffix("").name if p.suffix in (".safetensors", ".json") else p.name, model.tile,
                       model.stride, model.confidence_scale, model.camera, run_torch,
-                      run_told if model.psf_family_input else None)
+                      run_told if model.psf_family_input else None, pooled=pooled)
 
 
 def predicted_scale(confidence: torch.Tensor, confidence_scale: float) -> torch.Tensor:

@@ -3,7 +3,9 @@ r"""Export a DFD model (analytic layer + CNN) to one self-contained ONNX file.
 The model is any ``nn.Module`` with ``forward(image_f1, image_f2) -> (depth, confidence,
 depth_analytic)`` and attributes ``camera`` (:class:`tdfd.Camera`), ``tile`` and ``stride``
 — :class:`tdfd.model.DFDModel`, or the analytic :class:`tdfd.dfd.FourierRatioDFD` wrapped
-to return its depth twice.
+to return its depth twice. A model with the structure pooling returns ``(depth_pooled,
+confidence_pooled)`` after those three; the graph then has them as two more outputs
+(:data:`tdfd.contract.POOLED_OUTPUT_NAMES`, :func:`output_names_for`).
 
 The graph is captured with ``torch.export`` (``dynamo=True``) with symbolic batch, height
 and width; the tile-grid arithmetic (``h = (H - tile) // stride + 1``) stays symbolic
@@ -39,12 +41,13 @@ from torch import nn
 
 import tdfd
 from tdfd.contract import (BREATHING_KEY, CAMERA_KEY, COVERAGE_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET, MODEL_KEY,
-                           OUTPUT_NAMES, PSF_FAMILY_KEY, VERSION_KEY)
+                           OUTPUT_NAMES, POOLED_OUTPUT_NAMES, PSF_FAMILY_KEY, VERSION_KEY)
 from tdfd.coverage import camera_coverage
 from tdfd.errors import ModelError
 from tdfd.model.combined import PSF_FAMILY_INITIALIZER
 
-__all__ = ["INPUT_NAMES", "OUTPUT_NAMES", "METADATA_KEYS", "MIN_OPSET", "export_model", "onnx_metadata"]
+__all__ = ["INPUT_NAMES", "OUTPUT_NAMES", "METADATA_KEYS", "MIN_OPSET", "export_model", "onnx_metadata",
+           "output_names_for"]
 
 logger = logging.getLogger(__name__)
 
@@ -120,6 +123,20 @@ def _example_inputs(tile: int, stride: int, batch: int = 2) -> tuple[torch.Tenso
     return x1, (x1.roll(1, -1) * 0.9 + 0.05)
 
 
+def output_names_for(out: object) -> list[str]:
+    """The graph's output names for a model's ``forward`` result: the contract's three, then
+    :data:`~tdfd.contract.POOLED_OUTPUT_NAMES` when it returns five.
+
+    Raises:
+        ModelError: neither three nor five tensors.
+    """
+    n = len(out) if isinstance(out, (tuple, list)) else 1
+    if not isinstance(out, (tuple, list)) or n not in (len(OUTPUT_NAMES), len(OUTPUT_NAMES) + len(POOLED_OUTPUT_NAMES)):
+        raise ModelError(f"the model must return {OUTPUT_NAMES} (then optionally {POOLED_OUTPUT_NAMES}), got "
+                         f"{type(out).__name__} of length {n}")
+    return list(OUTPUT_NAMES) + (list(POOLED_OUTPUT_NAMES) if n > len(OUTPUT_NAMES) else [])
+
+
 def export_model(model: nn.Module, path: str | Path, opset: int = MIN_OPSET, optimize: bool = True) -> Path:
     """Export ``model`` to one self-contained ``.onnx`` file following the contract.
 
@@ -150,15 +167,13 @@ def export_model(model: nn.Module, path: str | Path, opset: int = MIN_OPSET, opt
     dims = {0: batch, 2: height, 3: width}
     with _export_mode(model), torch.no_grad():
         out = model(x1, x2)
-        if not isinstance(out, (tuple, list)) or len(out) != len(OUTPUT_NAMES):
-            raise ModelError(f"the model must return {OUTPUT_NAMES}, got {type(out).__name__} of length "
-                             f"{len(out) if isinstance(out, (tuple, list)) else 1}")
+        outputs = output_names_for(out)
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 program = torch.onnx.export(
                     model, (x1, x2), dynamo=True, opset_version=int(opset), input_names=list(INPUT_NAMES),
-                    output_names=list(OUTPUT_NAMES), dynamic_shapes=(dims, dims), optimize=optimize,
+                    output_names=outputs, dynamic_shapes=(dims, dims), optimize=optimize,
                     external_data=False, verbose=False, report=False)
         except Exception as exc:  # the exporter raises many types; surface them as one
             raise ModelError(f"ONNX export of {type(model).__name__} failed: {type(exc).__name__}: {exc}") from exc
@@ -167,7 +182,7 @@ def export_model(model: nn.Module, path: str | Path, opset: int = MIN_OPSET, opt
     for key, value in onnx_metadata(model).items():
         proto.metadata_props.add(key=key, value=value)
     proto.doc_string = (f"tdfd {tdfd.__version__} depth from defocus: image_f1/image_f2 float32 [N,1,H,W] in [0,1] "
-                        f"-> depth/confidence/depth_analytic [N,1,h,w] on the {tile}/{stride} tile grid (metres).")
+                        f"-> {'/'.join(outputs)} [N,1,h,w] on the {tile}/{stride} tile grid (metres).")
     onnx.save_model(proto, str(path), save_as_external_data=False)
     logger.info("exported %s (opset %d, %.1f kB)", path, opset, path.stat().st_size / 1024)
     return path

@@ -38,7 +38,8 @@ from tdfd.forward import Defocus, DFDForward, IdealSensor, PlanePairs
 from tdfd.grid import grid_shape
 from tdfd.sensor import SensorModel
 
-from tdfd.contract import BREATHING_KEY, CAMERA_KEY, COVERAGE_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET, OUTPUT_NAMES
+from tdfd.contract import (BREATHING_KEY, CAMERA_KEY, COVERAGE_KEY, GRID_KEY, INPUT_NAMES, METADATA_KEYS, MIN_OPSET,
+                           OUTPUT_NAMES, POOLED_OUTPUT_NAMES)
 from tdfd.coverage import camera_coverage, check_coverage
 
 from .onnx_export import _export_mode
@@ -105,8 +106,9 @@ def check_contract(proto: onnx.ModelProto, model: nn.Module | None = None) -> di
     if tuple(names) != INPUT_NAMES:
         raise ModelError(f"graph inputs are {names}, expected {list(INPUT_NAMES)}")
     outs = [o.name for o in proto.graph.output]
-    if tuple(outs) != OUTPUT_NAMES:
-        raise ModelError(f"graph outputs are {outs}, expected {list(OUTPUT_NAMES)}")
+    if tuple(outs) not in (OUTPUT_NAMES, OUTPUT_NAMES + POOLED_OUTPUT_NAMES):
+        raise ModelError(f"graph outputs are {outs}, expected {list(OUTPUT_NAMES)} (then optionally "
+                         f"{list(POOLED_OUTPUT_NAMES)})")
     for kind, values in (("input", proto.graph.input), ("output", proto.graph.output)):
         for v in values:
             if v.type.tensor_type.elem_type != onnx.TensorProto.FLOAT:
@@ -292,19 +294,25 @@ def verify_onnx(path: str | Path, model: nn.Module | None = None,
             for b in batches:
                 i1, i2 = realistic_pairs(model.camera, b, h, w, seed=seed + 7919 * h + w + 104729 * b)
                 ref = [t.detach().cpu().numpy() for t in model(i1, i2)]
-                got = sess.run(list(OUTPUT_NAMES), {INPUT_NAMES[0]: i1.numpy(), INPUT_NAMES[1]: i2.numpy()})
+                names = [o.name for o in sess.get_outputs()]
+                if len(ref) != len(names):
+                    raise ModelError(f"the graph has outputs {names}, the torch model returns {len(ref)} tensors")
+                got = sess.run(names, {INPUT_NAMES[0]: i1.numpy(), INPUT_NAMES[1]: i2.numpy()})
                 expect_shape = (b, 1, *grid_shape(h, w, int(model.tile), int(model.stride)))
-                conf_ref = ref[OUTPUT_NAMES.index("confidence")]
+                conf_ref = ref[names.index("confidence")]
                 trusted = conf_ref >= min_confidence
                 errs = {}
                 checks = []
-                for name, r, o in zip(OUTPUT_NAMES, ref, got):
+                for name, r, o in zip(names, ref, got):
+                    # a pooled output is trusted where the pooled confidence is
+                    trusted = (ref[names.index("confidence_pooled")] if name.endswith("_pooled") else conf_ref
+                               ) >= min_confidence
                     if tuple(o.shape) != expect_shape or tuple(r.shape) != expect_shape:
                         raise ModelError(f"{name} for {b}x1x{h}x{w} has shape ONNX {tuple(o.shape)} / torch "
                                          f"{tuple(r.shape)}, expected {expect_shape}")
                     if not np.isfinite(o).all():
                         raise ModelError(f"ONNX {name} for {b}x1x{h}x{w} contains NaN or inf")
-                    if name == "confidence":
+                    if name.startswith("confidence"):
                         e = np.abs(o.astype(np.float64) - r)
                         checks.append((name, "abs", e, np.ones_like(trusted), conf_atol))
                     else:
@@ -312,20 +320,22 @@ def verify_onnx(path: str | Path, model: nn.Module | None = None,
                         checks.append((name, f"rel (confidence >= {min_confidence:g})", e, trusted, rtol))
                         checks.append((name, "rel (all tiles)", e, np.ones_like(trusted), rtol_all))
                         errs[name + "_all"] = float(e.max())
-                    errs[name] = float(e[trusted].max()) if name != "confidence" and trusted.any() else (
-                        0.0 if name != "confidence" else float(e.max()))
+                    conf_like = name.startswith("confidence")
+                    errs[name] = float(e[trusted].max()) if not conf_like and trusted.any() else (
+                        0.0 if not conf_like else float(e.max()))
                 for name, kind, e, mask, tol in checks:
                     if not mask.any():
                         continue
                     em = np.where(mask, e, -1.0)
                     idx = np.unravel_index(int(np.argmax(em)), em.shape)
                     err = float(em[idx])
-                    o, r = got[OUTPUT_NAMES.index(name)], ref[OUTPUT_NAMES.index(name)]
+                    o, r = got[names.index(name)], ref[names.index(name)]
                     if err / tol > worst[0]:
                         worst = (err / tol, f"{name} at {b}x1x{h}x{w}, tile {tuple(int(i) for i in idx)} (confidence "
                                             f"{float(conf_ref[idx]):.3g}): ONNX {float(o[idx]):.7g} vs torch "
                                             f"{float(r[idx]):.7g}, {kind} error {err:.3g} > {tol:g}")
                     failed |= err > tol
+                trusted = conf_ref >= min_confidence
                 report.cases.append(ParityCase((h, w), b, errs["depth"], errs["depth_analytic"], errs["confidence"],
                                                errs["depth_all"], errs["depth_analytic_all"], float(trusted.mean())))
                 logger.info("parity %dx%d batch %d: %s", h, w, b, errs)

@@ -16,6 +16,7 @@ from pathlib import PurePosixPath
 __all__ = [
     "INPUT_NAMES",
     "OUTPUT_NAMES",
+    "POOLED_OUTPUT_NAMES",
     "CAMERA_KEY",
     "GRID_KEY",
     "VERSION_KEY",
@@ -34,6 +35,12 @@ __all__ = [
 INPUT_NAMES: tuple[str, str] = ("image_f1", "image_f2")
 #: Graph outputs, in the order the model returns them.
 OUTPUT_NAMES: tuple[str, str, str] = ("depth", "confidence", "depth_analytic")
+#: Optional graph outputs beyond the contract's three, after them and in this order: the depth
+#: map pooled along the scene's depth structure and its confidence, each ``[N, 1, h, w]`` on the
+#: same grid (:mod:`tdfd.model.structure_pooling`). Present only in a file whose model has that
+#: stage. ``depth`` and ``confidence`` stay each tile's own estimate, independent of its
+#: neighbours' (what the autofocus pools); the pooled map is the better depth map.
+POOLED_OUTPUT_NAMES: tuple[str, str] = ("depth_pooled", "confidence_pooled")
 #: ``metadata_props`` key of the camera description (``Camera.to_dict()`` as JSON).
 CAMERA_KEY = "tdfd.camera"
 #: ``metadata_props`` key of the tile grid (``{"tile", "stride"}`` as JSON).

@@ -4,7 +4,7 @@ r"""``tdfd depth``: depth from a DFD pair of image files with the exported ONNX 
 
     tdfd depth IMAGE_F1 IMAGE_F2 [--model M] [-o depth.npy|.tiff|.png] [--white-level L]
                [--full-resolution] [--threshold C] [--centre FRACTION] [--threads T]
-               [--psf-family gaussian|pillbox|unknown|CAM.json]
+               [--psf-family gaussian|pillbox|unknown|CAM.json] [--tiles]
 
 Reads single-channel 8- or 16-bit PNG/TIFF frames (or float32 TIFF in [0, 1]) with OpenCV
 (``IMREAD_UNCHANGED``), runs :class:`tdfd.runtime.DepthRuntime` (no torch), prints a
@@ -13,7 +13,9 @@ in-focus ECVFL power for that depth) and, with ``-o``, writes:
 
 * the depth map: ``.npy`` float32 metres, ``.tif``/``.tiff`` float32 metres, or ``.png``
   uint16 millimetres (0 where the confidence is below the threshold); on the tile grid,
-  or at image resolution with ``--full-resolution``;
+  or at image resolution with ``--full-resolution``. A model with the structure pooling
+  (:data:`tdfd.contract.POOLED_OUTPUT_NAMES`) writes its pooled map and that map's confidence;
+  ``--tiles`` writes each tile's own estimate instead (the printed summary reads the tiles);
 * ``<stem>_color.png``: the depth at image resolution in a fixed colour scale over the
   camera's working range (turbo colour map, near = red, far = blue), low-confidence
   regions greyed, with a labelled scale bar in metres.
@@ -63,6 +65,9 @@ def register(subparsers: Any) -> None:
                         "reference model)")
     p.add_argument("--centre", type=float, default=0.5,
                    help="fraction of the image height and width forming the centre region (default 0.5)")
+    p.add_argument("--tiles", action="store_true",
+                   help="write each tile's own estimate instead of the depth map pooled along the scene's depth "
+                        "structure (a model with that stage writes the pooled map by default)")
     p.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads (default 2)")
     p.add_argument("--psf-family", default="exported", metavar="FAMILY",
                    help="the lens's PSF family the model's CNN is told: gaussian, pillbox, unknown, a camera JSON "
@@ -259,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
         raise DTypeError(f"{args.image_f1} has {f1.dtype} pixels but {args.image_f2} has {f2.dtype}")
     model = Path(args.model) if args.model else default_model_path()
     rt = DepthRuntime(model, threads=args.threads, psf_family=psf_family_option(args.psf_family))
-    res = rt(f1, f2, white_level=args.white_level)
+    res = rt(f1, f2, white_level=args.white_level, pooled=not args.tiles)
     h, w = res.depth.shape
     valid = res.valid(args.threshold)
     centre = res.centre_depth(args.centre, args.threshold)
@@ -281,9 +286,11 @@ def run(args: argparse.Namespace) -> int:
     if args.output:
         full = res.at_full_resolution()
         out = full if args.full_resolution else res
-        path = write_depth(args.output, out.depth, out.confidence, args.threshold)
-        picture = colorize_depth(full.depth, full.confidence, rt.camera.depth_range_m, args.threshold)
+        depth, conf = out.depth_map
+        path = write_depth(args.output, depth, conf, args.threshold)
+        picture = colorize_depth(*full.depth_map, rt.camera.depth_range_m, args.threshold)
         pic = _write(path.with_name(path.stem + "_color.png"), lambda target: cv2.imwrite(str(target), picture))
-        print(f"wrote {path} ({'x'.join(map(str, out.depth.shape))} "
-              f"{'uint16 mm' if path.suffix.lower() == '.png' else 'float32 m'}) and {pic}")
+        kind = "pooled along the depth structure" if out.depth_pooled is not None else "each tile's own estimate"
+        print(f"wrote {path} ({'x'.join(map(str, depth.shape))} "
+              f"{'uint16 mm' if path.suffix.lower() == '.png' else 'float32 m'}; {kind}) and {pic}")
     return 0

@@ -59,7 +59,7 @@ import numpy as np
 from .breathing import breathing_window, registration_magnifications
 from .camera import Camera, in_focus_power_dpt
 from .contract import (BREATHING_KEY, CAMERA_KEY, COVERAGE_KEY, DEFAULT_MODEL_ENV, DEFAULT_MODEL_RELPATH, GRID_KEY, INPUT_NAMES, METADATA_KEYS,
-                       OUTPUT_NAMES, PACKAGED_MODEL_RELPATH, VERSION_KEY)
+                       OUTPUT_NAMES, PACKAGED_MODEL_RELPATH, POOLED_OUTPUT_NAMES, VERSION_KEY)
 from .camera_file import resolve_camera_file
 from .coverage import check_coverage
 from .errors import DTypeError, InputError, ModelError, ShapeError
@@ -183,6 +183,10 @@ class DepthResult:
         problems: per pair (in batch order), why it is no DFD pair
             (:func:`tdfd.pair_check.pair_problem`, e.g. ``"frames are identical: the lens did
             not move"``) or ``None``; a pair with a problem has confidence 0 everywhere.
+        depth_pooled, confidence_pooled: the depth map pooled along the scene's depth structure
+            and its confidence (:data:`tdfd.contract.POOLED_OUTPUT_NAMES`), from a file with that
+            stage and a call that asked for it; ``None`` otherwise. ``depth`` and ``confidence``
+            are each tile's own estimate either way.
     """
 
     depth: np.ndarray
@@ -193,6 +197,15 @@ class DepthResult:
     stride: int
     full_resolution: bool = False
     problems: tuple[str | None, ...] = ()
+    depth_pooled: np.ndarray | None = None
+    confidence_pooled: np.ndarray | None = None
+
+    @property
+    def depth_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(depth, confidence)`` of the best depth map: the pooled one when present, else the tiles'."""
+        if self.depth_pooled is not None and self.confidence_pooled is not None:
+            return self.depth_pooled, self.confidence_pooled
+        return self.depth, self.confidence
 
     @property
     def problem(self) -> str | None:
@@ -234,9 +247,12 @@ class DepthResult:
             return self
         H, W = self.image_size
         up = lambda x: resample_to_image(x, H, W, self.tile, self.stride)  # noqa: E731
+        pooled = self.depth_pooled is not None and self.confidence_pooled is not None
         return DepthResult(depth=1.0 / up(1.0 / self.depth), confidence=up(self.confidence),
                            depth_analytic=1.0 / up(1.0 / self.depth_analytic), image_size=self.image_size,
-                           tile=self.tile, stride=self.stride, full_resolution=True, problems=self.problems)
+                           tile=self.tile, stride=self.stride, full_resolution=True, problems=self.problems,
+                           depth_pooled=1.0 / up(1.0 / self.depth_pooled) if pooled else None,
+                           confidence_pooled=up(self.confidence_pooled) if pooled else None)
 
     def centre_depth(self, fraction: float = 0.5, threshold: float = DEFAULT_CONFIDENCE_THRESHOLD) -> float | np.ndarray:
         """Median depth (metres) of the confident cells in the centre region.
@@ -398,9 +414,11 @@ class DepthRuntime:
         self.session = make_session(path, threads, optimization, providers)
         inputs = [i.name for i in self.session.get_inputs()]
         outputs = [o.name for o in self.session.get_outputs()]
-        if tuple(inputs) != INPUT_NAMES or tuple(outputs) != OUTPUT_NAMES:
+        if tuple(inputs) != INPUT_NAMES or tuple(outputs) not in (OUTPUT_NAMES, OUTPUT_NAMES + POOLED_OUTPUT_NAMES):
             raise ModelError(f"{path} has inputs {inputs} and outputs {outputs}; expected {list(INPUT_NAMES)} and "
-                             f"{list(OUTPUT_NAMES)}")
+                             f"{list(OUTPUT_NAMES)} (then optionally {list(POOLED_OUTPUT_NAMES)})")
+        #: whether the file has the structure-pooled depth map (:data:`tdfd.contract.POOLED_OUTPUT_NAMES`)
+        self.has_pooled = len(outputs) > len(OUTPUT_NAMES)
         raw = self.session.get_modelmeta().custom_metadata_map
         self.metadata: dict[str, Any] = {}
         for key, value in raw.items():
@@ -533,12 +551,32 @@ class DepthRuntime:
             ModelError: onnxruntime failed (the message names the model and the first line of
                 onnxruntime's own).
         """
+        return self._session_run(list(OUTPUT_NAMES), image_f1, image_f2)  # type: ignore[return-value]
+
+    def run_pooled(self, image_f1: np.ndarray, image_f2: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`run` with the pooled map after the contract's three outputs:
+        ``(depth, confidence, depth_analytic, depth_pooled, confidence_pooled)``.
+
+        Raises:
+            ModelError: the file has no pooled outputs (:attr:`has_pooled`), or onnxruntime failed.
+        """
+        if not self.has_pooled:
+            raise ModelError(f"{self.path.name} has no {list(POOLED_OUTPUT_NAMES)} outputs (a model without the "
+                             "structure pooling)")
+        return self._session_run(list(OUTPUT_NAMES + POOLED_OUTPUT_NAMES), image_f1, image_f2)  # type: ignore
+
+    def run_all(self, image_f1: np.ndarray, image_f2: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Every output of the graph (:meth:`run_pooled` for a file with the pooled map, else :meth:`run`)."""
+        return self.run_pooled(image_f1, image_f2) if self.has_pooled else self.run(image_f1, image_f2)
+
+    def _session_run(self, names: list[str], image_f1: np.ndarray, image_f2: np.ndarray) -> tuple[np.ndarray, ...]:
         try:
-            out = self.session.run(list(OUTPUT_NAMES), {INPUT_NAMES[0]: image_f1, INPUT_NAMES[1]: image_f2})
+            out = self.session.run(names, {INPUT_NAMES[0]: image_f1, INPUT_NAMES[1]: image_f2})
         except Exception as exc:  # onnxruntime raises its own exception types (Fail, InvalidArgument, ...)
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else repr(exc)
             raise ModelError(f"onnxruntime failed running {self.path.name}: {first}") from exc
-        return tuple(out)  # type: ignore[return-value]
+        return tuple(out)
 
     def window_pair(self, image_f1: np.ndarray, image_f2: np.ndarray, window: tuple[int, int, int, int],
                     optical_centre: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -566,7 +604,7 @@ class DepthRuntime:
 
     def __call__(self, image_f1: np.ndarray, image_f2: np.ndarray, white_level: float | None = None,
                  full_resolution: bool = False, window: tuple[int, int, int, int] | None = None,
-                 optical_centre: tuple[float, float] | None = None) -> DepthResult:
+                 optical_centre: tuple[float, float] | None = None, pooled: bool = True) -> DepthResult:
         """Depth, confidence and analytic depth for a DFD pair.
 
         Args:
@@ -582,6 +620,9 @@ class DepthRuntime:
                 (:meth:`window_pair`).
             optical_centre: ``(cy, cx)`` in the given frames' pixels (default their centre);
                 with a breathing model, the frames (or the window) are moved accordingly.
+            pooled: also return the structure-pooled map (``depth_pooled``,
+                ``confidence_pooled``) when the file has it; ``False`` runs the contract's three
+                outputs only (what the autofocus reads).
 
         Returns:
             A :class:`DepthResult` in the input's layout.
@@ -597,12 +638,20 @@ class DepthRuntime:
         a, b, shape = self.prepare(image_f1, image_f2, white_level)
         if window is not None or optical_centre is not None:
             a, b = self.window_pair(a, b, window or (0, a.shape[-2], 0, a.shape[-1]), optical_centre)
-        depth, conf, depth_a = self.run(a, b)
+        if pooled and self.has_pooled:
+            depth, conf, depth_a, depth_p, conf_p = self.run_pooled(a, b)
+        else:
+            (depth, conf, depth_a), depth_p, conf_p = self.run(a, b), None, None
         if self.inverse_depth_offset_dpt:
             depth, outside = self._to_camera_depth(depth)
             conf = np.where(outside, 0.0, conf).astype(np.float32)  # the shift left the camera's range
             depth_a, _ = self._to_camera_depth(depth_a)
+            if depth_p is not None:
+                depth_p, outside_p = self._to_camera_depth(depth_p)
+                conf_p = np.where(outside_p, 0.0, conf_p).astype(np.float32)
         conf, problems = check_pairs(a, b, conf)
+        if conf_p is not None and any(problems):  # the same pairs are no DFD pairs for the pooled map
+            conf_p = np.where(np.array([bool(p) for p in problems])[:, None, None, None], 0.0, conf_p).astype(np.float32)
         H, W = a.shape[-2:]
         lead = {2: 0, 3: 1, 4: 2}[len(shape)]  # leading axes to keep: (H, W) -> none, (1, H, W) -> one
 
@@ -611,7 +660,9 @@ class DepthRuntime:
             return x[0, 0] if lead == 0 else (x[0] if lead == 1 else x)
 
         res = DepthResult(depth=fmt(depth), confidence=fmt(conf), depth_analytic=fmt(depth_a),
-                          image_size=(int(H), int(W)), tile=self.tile, stride=self.stride, problems=problems)
+                          image_size=(int(H), int(W)), tile=self.tile, stride=self.stride, problems=problems,
+                          depth_pooled=None if depth_p is None else fmt(depth_p),
+                          confidence_pooled=None if conf_p is None else fmt(conf_p))
         return res.at_full_resolution() if full_resolution else res
 
     def in_focus_power_dpt(self, depth_m: float | np.ndarray) -> float | np.ndarray:

@@ -199,6 +199,20 @@ def test_onnx_and_torch_runners_give_the_same_depth_and_scale():
     d_o, c_o, _ = onnx_model.run(i1.float(), i2.float())
     torch.testing.assert_close(d_o, d_t, rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(c_o, c_t, rtol=1e-3, atol=1e-4)
+    # the shipped model pools: 'map' scores the pooled map, 'tiles' each tile's own estimate, in both runners
+    assert torch_model.pooled and onnx_model.pooled
+    tiles_t = load_depth_model(ROOT / "models" / "reference", output="tiles")
+    tiles_o = load_depth_model(ROOT / "models" / "reference.onnx", output="tiles")
+    assert not tiles_t.pooled and not tiles_o.pooled
+    dt_t, ct_t, _ = tiles_t.run(i1.float(), i2.float())
+    dt_o, _, _ = tiles_o.run(i1.float(), i2.float())
+    torch.testing.assert_close(dt_o, dt_t, rtol=1e-4, atol=1e-5)
+    with torch.no_grad():
+        r = DFDModel.load(ROOT / "models" / "reference").eval().analyse(i1.float(), i2.float())
+    assert torch.equal(dt_t, r.depth) and torch.equal(ct_t, r.confidence) and torch.equal(d_t, r.depth_pooled)
+    assert not torch.allclose(d_t, dt_t, rtol=1e-4)
+    with pytest.raises(InputError, match="output"):
+        load_depth_model(ROOT / "models" / "reference", output="pooled")
 
 
 def test_the_told_runner_tells_each_scene_its_family_and_the_summary_compares():
@@ -219,7 +233,7 @@ def test_the_told_runner_tells_each_scene_its_family_and_the_summary_compares():
     with torch.no_grad():
         codes = torch.stack([family_code("pillbox"), family_code(None)])
         want = net.analyse(i1.float(), i2.float(), codes)
-    torch.testing.assert_close(d, want.depth)
+    torch.testing.assert_close(d, want.depth_map[0])  # the shipped model's pooled map
     assert not torch.allclose(d[0], model.run(i1.float(), i2.float())[0][0])  # the pillbox scene was told
     # the summary's told block: the Gaussian and pillbox scenes' tiles away from edges only
     t = torch.full((6,), 0.5)
@@ -358,3 +372,14 @@ def test_worker_processes_collect_the_same_tiles_in_the_same_order():
         assert one[lay]["scene"].unique().tolist() == [0, 1, 2]
         for k in one[lay]:
             torch.testing.assert_close(split[lay][k], one[lay][k], msg=f"{lay} {k}")
+
+
+def test_a_target_is_met_only_when_the_scenes_interval_meets_it():
+    from benchmarks.bench_structure import judge_over_scenes
+
+    assert judge_over_scenes(0.019, 0.015, 0.0199, 0.02, at_most=True) == "yes"
+    assert judge_over_scenes(0.019, 0.015, 0.026, 0.02, at_most=True).startswith("**undecided**")
+    assert judge_over_scenes(0.021, 0.019, 0.026, 0.02, at_most=True) == "**no**"
+    assert judge_over_scenes(0.55, 0.51, 0.60, 0.5, at_most=False) == "yes"
+    assert judge_over_scenes(0.55, 0.45, 0.60, 0.5, at_most=False).startswith("**undecided**")
+    assert judge_over_scenes(0.13, 0.10, 0.55, 0.5, at_most=False) == "**no**"

@@ -11,7 +11,7 @@ import pytest
 
 from tdfd import Camera
 from tdfd.camera import in_focus_power_dpt
-from tdfd.contract import DEFAULT_MODEL_RELPATH, INPUT_NAMES, METADATA_KEYS, OUTPUT_NAMES
+from tdfd.contract import DEFAULT_MODEL_RELPATH, INPUT_NAMES, METADATA_KEYS, OUTPUT_NAMES, POOLED_OUTPUT_NAMES
 from tdfd.errors import DTypeError, NonFiniteError, RangeError
 from tdfd.frames import raw_to_linear
 
@@ -27,7 +27,9 @@ def test_contract_matches_the_written_contract_and_the_shipped_file():
     assert METADATA_KEYS == ("tdfd.camera", "tdfd.grid", "tdfd.version")
     shipped = onnx.load(str(ROOT / DEFAULT_MODEL_RELPATH), load_external_data=False)
     assert tuple(i.name for i in shipped.graph.input) == INPUT_NAMES
-    assert tuple(o.name for o in shipped.graph.output) == OUTPUT_NAMES
+    # the contract's three outputs first, in its order; the shipped model adds its structure-pooled map after them
+    assert tuple(o.name for o in shipped.graph.output) == OUTPUT_NAMES + ("depth_pooled", "confidence_pooled")
+    assert POOLED_OUTPUT_NAMES == ("depth_pooled", "confidence_pooled")
     assert set(METADATA_KEYS) <= {p.key for p in shipped.metadata_props}
     import export
     import tdfd.runtime as rt

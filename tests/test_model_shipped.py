@@ -40,21 +40,24 @@ def test_beats_analytic_on_held_out_planes(model):
                                        illumination_prob=0.0)
     b = ds.batch(list(range(16)))
     with torch.no_grad():
-        depth, conf, depth_a = model(b["image_f1"], b["image_f2"])
+        depth, conf, depth_a, depth_p, conf_p = model(b["image_f1"], b["image_f2"])
     t = b["tile_depth"]
     keep = (t >= 0.3) & (t <= 1.0)
     err_r = ((depth - t).abs() / t)[keep].median()
     err_a = ((depth_a - t).abs() / t)[keep].median()
     assert float(err_r) < 0.8 * float(err_a), (float(err_r), float(err_a))
-    assert bool(((conf >= 0) & (conf <= 1)).all())
+    assert bool(((conf >= 0) & (conf <= 1)).all()) and bool(((conf_p >= 0) & (conf_p <= 1)).all())
+    # the shipped model's structure-pooled map: no worse than its tiles on these planes
+    err_p = ((depth_p - t).abs() / t)[keep].median()
+    assert float(err_p) < 1.05 * float(err_r), (float(err_p), float(err_r))
 
 
 def test_textureless_gets_low_confidence(model):
     ds = data_synth.DefocusPairDataset(size=128, seed=55, layouts={"plane": 1.0}, families=["flat"], illumination_prob=0.0)
     b = ds.batch(list(range(6)))
     with torch.no_grad():
-        _, conf, _ = model(b["image_f1"], b["image_f2"])
-    assert float(conf.quantile(0.9)) < 0.1
+        _, conf, _, _, conf_p = model(b["image_f1"], b["image_f2"])
+    assert float(conf.quantile(0.9)) < 0.1 and float(conf_p.quantile(0.9)) < 0.1
 
 
 def test_takes_the_psf_family_and_is_saved_unknown(model):

@@ -6,12 +6,14 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 
 from export import export_model, realistic_pairs, verify_onnx
 from export.testing import make_test_model
 from tdfd import Camera
+from tdfd.contract import OUTPUT_NAMES, POOLED_OUTPUT_NAMES
 from tdfd.errors import InputError, ModelError, NonFiniteError, RangeError, ShapeError
 from tdfd.model import DFDModel
 from tdfd.model.scale_calibration import ScaleCalibration
@@ -55,6 +57,38 @@ def test_noise_on_a_plane_is_averaged_down():
     after = ((out - truth) / truth)[inner].pow(2).mean().sqrt()
     # 25 tiles and 6 parameters: the centre value's variance shrinks several-fold
     assert float(after) < 0.5 * float(before)
+
+
+def test_the_curvature_test_keeps_planes_flat_and_curves_curved():
+    """On noisy planes the plane fit (``curvature_test``) errs less than the quadratic; on a
+    clearly curved surface the test keeps the quadratic, where a plane would be biased."""
+    g = torch.Generator().manual_seed(11)
+    y, x = _grid(24, 32)
+    rel = 0.02
+    inner = (slice(None), slice(None), slice(2, -2), slice(2, -2))
+
+    def rms(out, truth):
+        return float(((out - truth) / truth)[inner].pow(2).mean().sqrt())
+
+    plane = 1.8 + 0.01 * y - 0.005 * x
+    noisy = plane * (1 + rel * torch.randn(plane.shape, generator=g, dtype=torch.float64))
+    # the stated scale twice the noise: as the model's tiles, whose errors a local fit mostly
+    # shares with their neighbours (the test's threshold was chosen on such tiles)
+    b = torch.full_like(noisy, 2 * rel)
+    quadratic = pool_inverse_depth(noisy, b)
+    tested = pool_inverse_depth(noisy, b, curvature_test=1.0)
+    assert rms(tested, plane) < 0.85 * rms(quadratic, plane)
+    assert rms(pool_inverse_depth(noisy, b, degree=1), plane) <= rms(tested, plane) + 1e-12  # the plane is the limit
+    # a bowl whose curvature the window sees far above the noise: the quadratic stays
+    bowl = 1.5 + 0.004 * (x - 15.5) ** 2 + 0.003 * (y - 11.5) ** 2
+    noisy_bowl = bowl * (1 + 0.002 * torch.randn(bowl.shape, generator=g, dtype=torch.float64))
+    b2 = torch.full_like(bowl, 0.002)
+    kept, curved = pool_inverse_depth(noisy_bowl, b2, curvature_test=1.0), pool_inverse_depth(noisy_bowl, b2)
+    assert float((kept == curved).double().mean()) > 0.9 and rms(kept, bowl) < 1.1 * rms(curved, bowl)
+    assert rms(pool_inverse_depth(noisy_bowl, b2, degree=1), bowl) > 3 * rms(kept, bowl)
+    # off (0) is the quadratic everywhere; a lower degree ignores the test
+    assert torch.equal(pool_inverse_depth(noisy, b, curvature_test=0.0), quadratic)
+    assert torch.equal(pool_inverse_depth(noisy, b, degree=1, curvature_test=5.0), pool_inverse_depth(noisy, b, degree=1))
 
 
 def test_an_occlusion_edge_is_kept():
@@ -114,19 +148,26 @@ def test_float32_agrees_with_float64():
     assert torch.allclose(c, a, rtol=1e-5)
 
 
-@pytest.mark.parametrize("degree", [1, 2])
-def test_gradcheck_float64(degree):
+@pytest.mark.parametrize("degree, curvature_test", [(1, 0.0), (2, 0.0), (2, 1.0)])
+def test_gradcheck_float64(degree, curvature_test):
     g = torch.Generator().manual_seed(7)
     q = (1.5 + 0.05 * torch.rand(1, 1, 4, 5, generator=g, dtype=torch.float64)).requires_grad_()
     b = (0.01 + 0.02 * torch.rand(1, 1, 4, 5, generator=g, dtype=torch.float64)).requires_grad_()
-    assert torch.autograd.gradcheck(lambda a, c: pool_inverse_depth(a, c, radius=1, degree=degree), (q, b))
+    if curvature_test:  # both branches taken on this grid: the test's choice is piecewise constant
+        with torch.no_grad():
+            tested = pool_inverse_depth(q, b, radius=1, curvature_test=curvature_test)
+            assert not torch.equal(tested, pool_inverse_depth(q, b, radius=1))
+            assert not torch.equal(tested, pool_inverse_depth(q, b, radius=1, degree=1))
+    assert torch.autograd.gradcheck(
+        lambda a, c: pool_inverse_depth(a, c, radius=1, degree=degree, curvature_test=curvature_test), (q, b))
 
 
 @pytest.mark.parametrize("kw, match", [
     (dict(radius=0), "radius"), (dict(radius=1.5), "radius"), (dict(degree=3), "degree"),
     (dict(iterations=0), "iterations"), (dict(kernel_width=0.0), "kernel_width"),
     (dict(scale_floor=-1.0), "scale_floor"), (dict(ridge=-0.1), "ridge"), (dict(ridge=math.inf), "finite"),
-    (dict(kernel_width=math.nan), "kernel_width")])
+    (dict(kernel_width=math.nan), "kernel_width"), (dict(curvature_test=-1.0), "curvature_test"),
+    (dict(curvature_test=math.inf), "finite")])
 def test_bad_options_are_named(kw, match):
     q = torch.ones(1, 1, 3, 3)
     with pytest.raises(InputError, match=match):
@@ -159,18 +200,29 @@ def test_model_pools_its_own_depth_and_calibrates_the_pooled_scale(tmp_path):
     i1, i2 = realistic_pairs(model.camera, 2, 224, 288, seed=0)  # a 6x8 tile grid
     with torch.no_grad():
         plain = model.analyse(i1, i2)
+        assert plain.depth_pooled is None and len(model(i1, i2)) == 3
         model.set_structure_pooling({"radius": 2, "ridge": 0.05},
                                     {"log_b": [-6.0, -3.0], "log_b_calibrated": [-6.5, -3.2]})
         pooled = model.analyse(i1, i2)
+        outputs = model(i1, i2)
+    # the tiles stay each tile's own estimate, bit for bit; the pooled map comes beside them
+    for name in ("depth", "confidence", "depth_analytic", "inverse_depth", "log_scale"):
+        assert torch.equal(getattr(pooled, name), getattr(plain, name)), name
     want_q = pool_inverse_depth(plain.inverse_depth, plain.log_scale.exp(), radius=2, ridge=0.05)
     q_lo, q_hi = model.analytic.inv_depth_limits
-    assert torch.allclose(pooled.inverse_depth, want_q.clamp(q_lo, q_hi), rtol=1e-6)
-    assert not torch.allclose(pooled.inverse_depth, plain.inverse_depth, rtol=1e-4)
-    want_log = ScaleCalibration([-6.0, -3.0], [-6.5, -3.2])(plain.log_scale, pooled.inverse_depth)
-    assert torch.allclose(pooled.log_scale, want_log, atol=1e-6)
-    ratio = pooled.log_scale.exp() / model.confidence_scale
-    assert torch.allclose(pooled.confidence, 1 / (1 + ratio * ratio), atol=1e-6)
-    assert torch.equal(pooled.depth_analytic, plain.depth_analytic)
+    assert torch.allclose(pooled.inverse_depth_pooled, want_q.clamp(q_lo, q_hi), rtol=1e-6)
+    assert torch.allclose(pooled.depth_pooled, 1 / pooled.inverse_depth_pooled)
+    assert not torch.allclose(pooled.inverse_depth_pooled, plain.inverse_depth, rtol=1e-4)
+    want_log = ScaleCalibration([-6.0, -3.0], [-6.5, -3.2])(plain.log_scale, pooled.inverse_depth_pooled)
+    assert torch.allclose(pooled.log_scale_pooled, want_log, atol=1e-6)
+    ratio = pooled.log_scale_pooled.exp() / model.confidence_scale
+    assert torch.allclose(pooled.confidence_pooled, 1 / (1 + ratio * ratio), atol=1e-6)
+    assert pooled.depth_map[0] is pooled.depth_pooled and plain.depth_map[0] is plain.depth
+    # forward: the contract's three outputs, then the pooled two
+    assert len(outputs) == 5
+    for got, want in zip(outputs, (plain.depth, plain.confidence, plain.depth_analytic, pooled.depth_pooled,
+                                   pooled.confidence_pooled)):
+        assert torch.equal(got, want)
     # the training path never pools
     out = model.head_with_family(pooled.features, pooled.analytic.inverse_depth, pooled.analytic.rel_error)
     assert torch.allclose(out[0], plain.inverse_depth)
@@ -180,11 +232,14 @@ def test_model_pools_its_own_depth_and_calibrates_the_pooled_scale(tmp_path):
     assert desc["structure_pooling"]["ridge"] == 0.05 and desc["pooled_scale_calibration"]["log_b"] == [-6.0, -3.0]
     with torch.no_grad():
         again = DFDModel.load(tmp_path / "m").eval().analyse(i1, i2)
-    assert torch.allclose(again.depth, pooled.depth) and torch.allclose(again.confidence, pooled.confidence)
+    assert torch.allclose(again.depth_pooled, pooled.depth_pooled)
+    assert torch.allclose(again.confidence_pooled, pooled.confidence_pooled)
     # off again: the model as it was
     model.set_structure_pooling(None)
     with torch.no_grad():
         assert torch.equal(model.analyse(i1, i2).depth, plain.depth)
+    with pytest.raises(InputError, match="no structure pooling"):
+        model.pool(plain.inverse_depth, plain.log_scale)
 
 
 def test_a_pooled_calibration_without_pooling_is_refused(tmp_path):
@@ -207,16 +262,55 @@ def test_an_older_description_loads_without_pooling(tmp_path):
     meta.write_text(json.dumps(cfg))
     loaded = DFDModel.load(tmp_path / "m")
     assert loaded.structure_pooling is None and loaded.pooled_scale_calibration.to_config() is None
+    # a description from before the curvature test: the quadratic everywhere, as it was
+    cfg["structure_pooling"] = {"radius": 2, "degree": 2, "kernel_width": 2.5, "iterations": 2, "scale_floor": 0.005,
+                                "ridge": 0.001}
+    meta.write_text(json.dumps(cfg))
+    assert DFDModel.load(tmp_path / "m").structure_pooling.curvature_test == 0.0
 
 
 def test_onnx_export_carries_the_pooling(tmp_path):
     model = make_test_model(0)
-    model.set_structure_pooling({"radius": 2}, {"log_b": [-6.0, -3.0], "log_b_calibrated": [-6.5, -3.2]})
+    # the shipped options: the curvature test's choice (a Where) in the graph too
+    model.set_structure_pooling({"radius": 2, "curvature_test": 1.0},
+                                {"log_b": [-6.0, -3.0], "log_b_calibrated": [-6.5, -3.2]})
     path = tmp_path / "pooled.onnx"
     export_model(model, path)
     # grids of 1x1, 4x5 and 6x8 tiles: the window larger than the grid, and interior tiles
     report = verify_onnx(path, model, sizes=[(64, 64), (160, 192), (224, 288)], batches=[1, 2])
     assert_parity(report, cases=6)
+    # the contract's three outputs, then the pooled map: checked against torch like the others
+    from tdfd.runtime import DepthRuntime
+    rt = DepthRuntime(path, threads=1)
+    assert [o.name for o in rt.session.get_outputs()] == list(OUTPUT_NAMES + POOLED_OUTPUT_NAMES) and rt.has_pooled
+    i1, i2 = realistic_pairs(model.camera, 1, 224, 288, seed=5)
+    a, b = i1[0, 0].numpy(), i2[0, 0].numpy()
+    res, tiles_only = rt(a, b), rt(a, b, pooled=False)
+    assert tiles_only.depth_pooled is None and np.array_equal(res.depth, tiles_only.depth)
+    with torch.no_grad():
+        want = model.analyse(i1, i2)
+    np.testing.assert_allclose(res.depth_pooled, want.depth_pooled[0, 0].numpy(), rtol=1e-4)
+    np.testing.assert_allclose(res.confidence_pooled, want.confidence_pooled[0, 0].numpy(), atol=1e-3)
+    assert res.depth_map[0] is res.depth_pooled
+    full = res.at_full_resolution()
+    assert full.depth_pooled.shape == (224, 288) and full.confidence_pooled.shape == (224, 288)
+    # a pooled output that disagrees with torch is caught, the tiles' being right
+    model.set_structure_pooling({"radius": 1}, {"log_b": [-6.0, -3.0], "log_b_calibrated": [-6.5, -3.2]})
+    with pytest.raises(ModelError, match="_pooled"):
+        verify_onnx(path, model, sizes=[(224, 288)], batches=[1])
+
+
+def test_a_file_without_the_pooling_has_the_contracts_three_outputs(tmp_path):
+    from tdfd.runtime import DepthRuntime
+    model = make_test_model(0)
+    path = export_model(model, tmp_path / "plain.onnx")
+    rt = DepthRuntime(path, threads=1)
+    assert [o.name for o in rt.session.get_outputs()] == list(OUTPUT_NAMES) and not rt.has_pooled
+    i1, i2 = realistic_pairs(model.camera, 1, 128, 128, seed=1)
+    assert rt(i1[0, 0].numpy(), i2[0, 0].numpy()).depth_pooled is None
+    assert len(rt.run_all(i1.numpy(), i2.numpy())) == 3
+    with pytest.raises(ModelError, match="no .*depth_pooled"):
+        rt.run_pooled(i1.numpy(), i2.numpy())
 
 
 def test_calibration_stage_fits_the_pooled_scale(tmp_path):
@@ -239,6 +333,24 @@ def test_calibration_stage_fits_the_pooled_scale(tmp_path):
     assert calibrate_scale.main(["--model", str(tmp_path / "m"), "--out", str(tmp_path / "n"), *args]) == 0
     assert DFDModel.read_description(tmp_path / "n")["scale_calibration"] == desc["scale_calibration"]
     assert DFDModel.read_description(tmp_path / "n")["structure_pooling"] is None
+    # --pooled-only keeps the tiles' map (what the autofocus reads) and fits the pooled one on top
+    tiles_map = DFDModel.read_description(tmp_path / "p")["scale_calibration"]
+    assert calibrate_scale.main(["--model", str(tmp_path / "n"), "--out", str(tmp_path / "q"), *args,
+                                 "--structure-pooling", '{"radius": 1}', "--pooled-only"]) == 0
+    only = DFDModel.read_description(tmp_path / "q")
+    assert only["scale_calibration"] == tiles_map and only["pooled_scale_calibration"] == desc["pooled_scale_calibration"]
+    assert only["extra"]["scale_calibration_fit"]["knot_factors"] == fit["knot_factors"]
+    with pytest.raises(SystemExit):
+        calibrate_scale.main(["--model", str(tmp_path / "n"), "--pooled-only", *args])
+    # the pooled map on its own, larger set (the first scenes of the same seeds), the tiles' map kept
+    assert calibrate_scale.main(["--model", str(tmp_path / "q"), "--out", str(tmp_path / "r"), *args, "--pooled-only",
+                                 "--pooled-planes", "12", "--pooled-scenes", "2"]) == 0
+    more = DFDModel.read_description(tmp_path / "r")
+    pooled_fit = more["extra"]["scale_calibration_fit"]["pooled"]
+    assert (pooled_fit["planes"], pooled_fit["scenes_per_layout"]) == (12, 2) and pooled_fit["tiles"] > fit["tiles"]
+    assert more["scale_calibration"] == tiles_map and more["pooled_scale_calibration"] != only["pooled_scale_calibration"]
+    with pytest.raises(InputError, match="pooled_only"):
+        calibrate_scale.calibrate_model(DFDModel.load(tmp_path / "n"), planes=2, scenes=1, pooled_only=True)
     # 'none' takes a pooled model's stage away
     assert calibrate_scale.main(["--model", str(tmp_path / "p"), "--out", str(tmp_path / "o"), *args,
                                  "--structure-pooling", "none"]) == 0
@@ -251,3 +363,28 @@ def test_calibration_stage_refuses_bad_pooling_options(tmp_path, capsys):
         with pytest.raises(SystemExit):
             calibrate_scale.main(["--model", str(tmp_path / "m"), "--structure-pooling", bad])
         assert "--structure-pooling" in capsys.readouterr().err
+
+
+def test_the_tuning_tool_scores_options_on_the_calibration_scenes(tmp_path, capsys):
+    from benchmarks import tune_pooling
+
+    model = DFDModel(Camera.preset("reference"), tile=64, stride=32, hidden=8, blocks=1)
+    model.save(tmp_path / "m")
+    tiles = tune_pooling.collect_tiles(model, planes=2, scenes=1)
+    assert list(tiles) == ["planes", "slanted", "layout", "smooth"]
+    assert tiles["layout"]["q"].shape == (1, 1, 14, 19) and tiles["layout"]["edge"].dtype == torch.bool
+    limits, rng = model.analytic.inv_depth_limits, model.camera.depth_range_m
+    none = tune_pooling.score_pooling(tiles, None, limits, rng)
+    assert set(none) == {"planes", "slanted", "layout", "smooth", "structure"}
+    assert none["structure"] == pytest.approx((none["slanted"] + none["layout"] + none["smooth"]) / 3)
+    pooled = tune_pooling.score_pooling(tiles, {"curvature_test": 1.0}, limits, rng)
+    assert pooled != none and all(math.isfinite(v) for v in pooled.values())
+    with pytest.raises(InputError, match="unknown structure pooling option"):
+        tune_pooling.score_pooling(tiles, {"sigma": 1.0}, limits, rng)
+    assert tune_pooling.main(["--model", str(tmp_path / "m"), "--planes", "2", "--scenes", "1", "--threads", "1",
+                              "--options", '[{}, {"degree": 1}]']) == 0
+    out = capsys.readouterr().out
+    assert "| no pooling |" in out and '| `{"degree": 1}` |' in out
+    for bad in ("{not json", '{"radius": 2}', '[{"radius": 0}]'):
+        with pytest.raises(SystemExit):
+            tune_pooling.main(["--model", str(tmp_path / "m"), "--options", bad])

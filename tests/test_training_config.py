@@ -59,6 +59,8 @@ def test_json_file_round_trip(tmp_path):
     ("model.context=[3, x]", "expected a list"),
     ("model.context=[3.5]", "expected int"),
     ("model.coarse=[1]", "coarse"),  # the removed experimental option is an unknown key
+    ("calibration.pooled_planes=-1", "pooled_planes"),
+    ("calibration.pooled_scenes=-2", "pooled_planes and pooled_scenes"),
 ])
 def test_bad_overrides_raise_typed_errors(override, match):
     with pytest.raises(ConfigError, match=match) as info:

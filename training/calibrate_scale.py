@@ -32,7 +32,7 @@ A model that already has a calibration is refitted from its uncalibrated scale.
 A model with the structure pooling (:mod:`tdfd.model.structure_pooling`, ``--structure-pooling``)
 gets a second map of the same form, fitted the same way on the same scenes: from the calibrated
 scale of the CNN's depth (the pooling's weights) to the pooled depth's errors
-(``pooled_scale_calibration``).
+(``pooled_scale_calibration``). ``--pooled-only`` keeps the tiles' map and fits only that one.
 """
 
 from __future__ import annotations
@@ -56,7 +56,8 @@ from tdfd.model.scale_calibration_fit import fit_tile_calibration
 
 from .data import STRUCTURE_LAYOUTS, textured_scenes
 
-__all__ = ["PLANE_SEED", "STRUCTURE_SEED", "collect_scale_errors", "calibrate_model", "plot_scale_calibration", "main"]
+__all__ = ["PLANE_SEED", "STRUCTURE_SEED", "calibration_scene_sets", "collect_scale_errors", "calibrate_model",
+           "plot_scale_calibration", "main"]
 
 logger = logging.getLogger("training.calibrate_scale")
 
@@ -65,8 +66,11 @@ PLANE_SEED = 91_000_001
 STRUCTURE_SEED = 92_000_003
 
 
-def _scene_sets(model: DFDModel, planes: int, scenes: int, plane_size: int, structure_size: tuple[int, int]
-                ) -> list[tuple[str, DefocusPairDataset, int, int]]:
+def calibration_scene_sets(model: DFDModel, planes: int, scenes: int, plane_size: int = 256,
+                           structure_size: tuple[int, int] = (480, 640)
+                           ) -> list[tuple[str, DefocusPairDataset, int, int]]:
+    """The calibration's scene sets: ``(name, dataset, count, batch)`` for the planes (seed
+    :data:`PLANE_SEED`) and each depth-structure layout (seed :data:`STRUCTURE_SEED`)."""
     grid = (model.camera, model.tile, model.stride)
     sets = [("planes", textured_scenes(*grid, "plane", (plane_size, plane_size), PLANE_SEED), planes, 16)]
     for layout in STRUCTURE_LAYOUTS:
@@ -104,14 +108,15 @@ def collect_scale_errors(model: DFDModel, planes: int = 2048, scenes: int = 64, 
     near, far = model.camera.depth_range_m
     out: dict[str, list[torch.Tensor]] = {"scale": [], "error": [], "inverse_depth": [], "border": [], "set": []}
     try:
-        for k, (name, ds, count, chunk) in enumerate(_scene_sets(model, planes, scenes, plane_size, structure_size)):
+        for k, (name, ds, count, chunk) in enumerate(calibration_scene_sets(model, planes, scenes, plane_size, structure_size)):
             for start in tqdm(range(0, count, chunk), desc=name, mininterval=10.0):
                 batch = ds.batch(list(range(start, min(count, start + chunk))))
                 r = model.analyse(batch["image_f1"].float(), batch["image_f2"].float())
                 true = batch["tile_depth"].double()
                 keep = (true >= near) & (true <= far)
-                q, q_true = r.inverse_depth.double()[keep], 1.0 / true[keep]
-                out["scale"].append(r.log_scale.double()[keep].exp())
+                q_r, log_r = (r.inverse_depth_pooled, r.log_scale_pooled) if pooled else (r.inverse_depth, r.log_scale)
+                q, q_true = q_r.double()[keep], 1.0 / true[keep]
+                out["scale"].append(log_r.double()[keep].exp())
                 out["error"].append((q - q_true) / q_true)
                 out["inverse_depth"].append(q)
                 out["border"].append(tile_border_distance(true).expand_as(true)[keep])
@@ -122,27 +127,44 @@ def collect_scale_errors(model: DFDModel, planes: int = 2048, scenes: int = 64, 
 
 
 def calibrate_model(model: DFDModel, planes: int = 2048, scenes: int = 64, bins: int = 40, smooth: int = 3,
-                    min_factor: float | None = None, depth_bins: int = 20, border_levels: int = 5) -> dict[str, object]:
+                    min_factor: float | None = None, depth_bins: int = 20, border_levels: int = 5,
+                    pooled_only: bool = False, pooled_planes: int | None = None,
+                    pooled_scenes: int | None = None) -> dict[str, object]:
     """Fit and set ``model.scale_calibration`` (:func:`collect_scale_errors`, then
     :func:`~tdfd.model.scale_calibration_fit.fit_tile_calibration`; ``depth_bins`` or
     ``border_levels`` 0: without that part), and for a model with the structure pooling its
     ``pooled_scale_calibration`` after it (the same fit on the pooled errors).
 
+    Args:
+        pooled_only: keep the model's ``scale_calibration`` (the tiles' map, which the autofocus
+            reads) and fit only the pooled map on top of it.
+        pooled_planes, pooled_scenes: the pooled map's planes and scenes per layout (``None``:
+            ``planes``, ``scenes``); the first ones of the same seeds.
+
     Returns:
         What the fit used and found: seeds, counts, and per knot the factor ``b' / b`` of each
-        part; the pooled map's under ``"pooled"``.
+        part; the pooled map's under ``"pooled"`` (with ``pooled_only``, only that).
+
+    Raises:
+        InputError: ``pooled_only`` for a model without the structure pooling.
     """
     t0 = time.perf_counter()
-    data = collect_scale_errors(model, planes, scenes)
     fit = dict(bins=bins, smooth=smooth, depth_bins=depth_bins, border_levels=border_levels, min_factor=min_factor)
-    model.scale_calibration = ScaleCalibration.from_config(_fit(data, fit))
-    info = _describe(model.scale_calibration.to_config(), data, planes, scenes, fit)
+    if pooled_only:
+        if model.structure_pooling is None:
+            raise InputError("pooled_only needs a model with the structure pooling")
+        info: dict[str, object] = {}
+    else:
+        data = collect_scale_errors(model, planes, scenes)
+        model.scale_calibration = ScaleCalibration.from_config(_fit(data, fit))
+        info = _describe(model.scale_calibration.to_config(), data, planes, scenes, fit)
     if model.structure_pooling is not None:
+        p_planes, p_scenes = pooled_planes or planes, pooled_scenes or scenes
         model.pooled_scale_calibration = ScaleCalibration()
-        pooled = collect_scale_errors(model, planes, scenes, pooled=True)
+        pooled = collect_scale_errors(model, p_planes, p_scenes, pooled=True)
         model.pooled_scale_calibration = ScaleCalibration.from_config(_fit(pooled, fit))
         logger.info("the structure-pooled depth's scale:")
-        info["pooled"] = _describe(model.pooled_scale_calibration.to_config(), pooled, planes, scenes, fit)
+        info["pooled"] = _describe(model.pooled_scale_calibration.to_config(), pooled, p_planes, p_scenes, fit)
         info["pooled"]["structure_pooling"] = model.structure_pooling.to_config()
     info["seconds"] = round(time.perf_counter() - t0, 1)
     logger.info("fitted in %.0f s", info["seconds"])
@@ -244,10 +266,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--structure-pooling", default="keep",
                    help="'keep' (the model's own), 'none', 'default' (StructurePooling's defaults) or a JSON object "
                         "of its options: the last stage whose scale is calibrated second")
+    p.add_argument("--pooled-planes", type=int, default=0, help="the pooled map's planes (0: --planes)")
+    p.add_argument("--pooled-scenes", type=int, default=0, help="the pooled map's scenes per layout (0: --scenes)")
+    p.add_argument("--pooled-only", action="store_true",
+                   help="keep the model's own map of the tiles' scale (what the autofocus reads) and fit only the "
+                        "structure-pooled depth's map on top of it")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stdout)
-    if args.planes < 1 or args.scenes < 1:
-        p.error("--planes and --scenes must be >= 1")
+    if args.planes < 1 or args.scenes < 1 or args.pooled_planes < 0 or args.pooled_scenes < 0:
+        p.error("--planes and --scenes must be >= 1, --pooled-planes and --pooled-scenes >= 0")
     if min(args.depth_bins, args.border_levels) < 0 or 1 in (args.depth_bins, args.border_levels):
         p.error("--depth-bins and --border-levels must be 0 (without that part) or >= 2")
     try:
@@ -264,17 +291,24 @@ def main(argv: list[str] | None = None) -> int:
             model.set_structure_pooling(options)
         except (json.JSONDecodeError, InputError, TypeError) as exc:
             p.error(f"--structure-pooling: {exc}")
+    if args.pooled_only and model.structure_pooling is None:
+        p.error("--pooled-only needs a model with the structure pooling (--structure-pooling)")
     meta = DFDModel.read_description(args.model)
     info = calibrate_model(model, args.planes, args.scenes, args.bins, args.smooth, min_factor, args.depth_bins,
-                           args.border_levels)
+                           args.border_levels, pooled_only=args.pooled_only, pooled_planes=args.pooled_planes or None,
+                           pooled_scenes=args.pooled_scenes or None)
     extra = dict(meta.get("extra") or {})
+    if args.pooled_only:  # the tiles' fit as it was, the pooled one beside it
+        info = {**dict(extra.get("scale_calibration_fit") or {}), "pooled": info["pooled"],
+                "pooled_seconds": info["seconds"]}
     extra["scale_calibration_fit"] = info
     out = Path(args.out or args.model)
     weights, desc = model.save(out, extra=extra)
     logger.info("wrote %s and %s", weights, desc)
     if args.plot:
-        plot_scale_calibration(model.scale_calibration, Path(args.plot), f"Scale calibration of {out.name}")
-        logger.info("wrote %s", args.plot)
+        if not args.pooled_only:
+            plot_scale_calibration(model.scale_calibration, Path(args.plot), f"Scale calibration of {out.name}")
+            logger.info("wrote %s", args.plot)
         if model.structure_pooling is not None:
             pooled_plot = Path(args.plot).with_name(Path(args.plot).stem + "_pooled.png")
             plot_scale_calibration(model.pooled_scale_calibration, pooled_plot,

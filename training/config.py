@@ -147,6 +147,8 @@ class CalibrationConfig:
         min_factor: smallest factor ``b' / b`` at a knot of the scale part (1: only widen); 0 = no bound.
         depth_bins: bands of the refined inverse depth (the depth part's knots); 0 = no depth part.
         border_levels: distances to the grid's edge with their own factor; 0 = no edge part.
+        pooled_planes, pooled_scenes: the structure-pooled map's planes and scenes per layout
+            (a model with ``model.structure_pooling``); 0 = ``planes``, ``scenes``.
     """
 
     enabled: bool = False
@@ -157,6 +159,8 @@ class CalibrationConfig:
     min_factor: float = 0.0
     depth_bins: int = 20
     border_levels: int = 5
+    pooled_planes: int = 0
+    pooled_scenes: int = 0
 
 
 #: Textured texture families (every registered family but the near-uniform ``gradient`` and ``flat``).
@@ -423,6 +427,8 @@ def validate_config(cfg: TrainConfig) -> None:
          "model.family_inference needs model.psf_family_input = true"),
         (cfg.optim.family_weight >= 0, "optim.family_weight must be >= 0"),
         (cfg.calibration.planes >= 1 and cfg.calibration.scenes >= 1, "calibration.planes and scenes must be >= 1"),
+        (cfg.calibration.pooled_planes >= 0 and cfg.calibration.pooled_scenes >= 0,
+         "calibration.pooled_planes and pooled_scenes must be >= 0 (0: planes, scenes)"),
         (cfg.calibration.bins >= 2, "calibration.bins must be >= 2"),
         (cfg.calibration.smooth >= 1 and cfg.calibration.smooth % 2 == 1, "calibration.smooth must be an odd width >= 1"),
         (math.isfinite(cfg.calibration.min_factor) and cfg.calibration.min_factor >= 0,

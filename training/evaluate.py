@@ -90,7 +90,7 @@ def collect(model: DFDModel, dataset: Any, count: int, chunk: int = 8, tell_fami
         params = params if isinstance(params, list) else [{}] * n
         codes = training_codes(params, 1.0) if tell_family else None
         r = model.analyse(batch["image_f1"].float(), batch["image_f2"].float(), codes)
-        depth, conf, depth_a = r.depth, r.confidence, r.depth_analytic
+        (depth, conf), depth_a = r.depth_map, r.depth_analytic  # the pooled map when the model pools
         tiles = depth[0].numel()
         out["true"].append(batch["tile_depth"].float().flatten())
         out["refined"].append(depth.flatten())

@@ -393,7 +393,9 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
         if cfg.calibration.enabled:  # the last stage: the predicted error scale (before the report, which scores it)
             c = cfg.calibration
             extra["scale_calibration_fit"] = calibrate_model(model, c.planes, c.scenes, c.bins, c.smooth,
-                                                             c.min_factor or None, c.depth_bins, c.border_levels)
+                                                             c.min_factor or None, c.depth_bins, c.border_levels,
+                                                             pooled_planes=c.pooled_planes or None,
+                                                             pooled_scenes=c.pooled_scenes or None)
             model.save(out / "model", extra=extra)
         if cfg.final_eval:
             from .evaluate import evaluate_planes, write_report

@@ -177,7 +177,8 @@ class OnnxEstimator:
         """Depth (m) and confidence, each ``(h, w)``, for one pair of ``(H, W)`` frames
         (``optical_centre``: where the optical centre lies in them, when they are a crop)."""
         centre = optical_centre if self._runtime.magnification_per_dpt else None  # no breathing: nothing to move
-        res = self._runtime(_as_frame(image_f1, "image_f1"), _as_frame(image_f2, "image_f2"), optical_centre=centre)
+        res = self._runtime(_as_frame(image_f1, "image_f1"), _as_frame(image_f2, "image_f2"), optical_centre=centre,
+                            pooled=False)  # each tile's own estimate: the ROI pools them
         self.last_problem = res.problem
         depth, conf = res.depth, res.confidence
         return np.asarray(depth, np.float32).reshape(np.shape(depth)[-2:]), np.asarray(conf, np.float32).reshape(np.shape(conf)[-2:])

@@ -23,9 +23,12 @@ median ``b ln 2`` (issue 19). The confidence is computed from the calibrated ``b
 Optionally a last stage pools the tiles along the scene's depth structure
 (:class:`~tdfd.model.structure_pooling.StructurePooling`: a robust local surface fit of ``q``
 weighted by each tile's calibrated ``b``); its output's scale is calibrated again, by a second
-map of the same form fitted on the pooled errors (``pooled_scale_calibration``). Training
-never sees the stage (:meth:`DFDModel.head_with_family` is the CNN as trained); inference,
-the benchmarks and the export do (:meth:`DFDModel.head`).
+map of the same form fitted on the pooled errors (``pooled_scale_calibration``). The stage adds
+to the tiles, it does not replace them: ``depth`` and ``confidence`` stay each tile's own
+estimate, independent of its neighbours' (what the autofocus pools over its ROI), and
+``depth_pooled`` / ``confidence_pooled`` are the pooled map (:meth:`DFDModel.pool`; the
+optional ONNX outputs :data:`tdfd.contract.POOLED_OUTPUT_NAMES`). Training never sees the stage
+(:meth:`DFDModel.head_with_family` is the CNN as trained).
 
 With the refinement head at zero (a fresh model) ``depth`` equals ``depth_analytic``
 exactly. The forward pass has no data-dependent Python control flow and no ``torch.fft``,
@@ -207,6 +210,10 @@ class RefinedResult:
         log_scale: log of the predicted Laplace scale of the relative error.
         features: the CNN's input ``(B, C, h, w)``.
         analytic: the analytic estimator's :class:`~tdfd.dfd.DFDResult`.
+        depth_pooled, confidence_pooled, inverse_depth_pooled, log_scale_pooled: the same
+            after the structure pooling (:meth:`DFDModel.pool`); ``None`` for a model without it.
+
+    The first four are each tile's own estimate (without the pooling, whether the model has it or not).
     """
 
     depth: torch.Tensor
@@ -216,6 +223,17 @@ class RefinedResult:
     log_scale: torch.Tensor
     features: torch.Tensor
     analytic: DFDResult
+    depth_pooled: torch.Tensor | None = None
+    confidence_pooled: torch.Tensor | None = None
+    inverse_depth_pooled: torch.Tensor | None = None
+    log_scale_pooled: torch.Tensor | None = None
+
+    @property
+    def depth_map(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(depth, confidence)`` of the best depth map: the pooled one if the model pools, else the tiles'."""
+        if self.depth_pooled is not None and self.confidence_pooled is not None:
+            return self.depth_pooled, self.confidence_pooled
+        return self.depth, self.confidence
 
 
 class DFDModel(nn.Module):
@@ -350,8 +368,9 @@ class DFDModel(nn.Module):
 
     def set_structure_pooling(self, options: dict[str, Any] | None,
                               pooled_scale_calibration: dict[str, list[float]] | None = None) -> "DFDModel":
-        """Pool the tiles along the depth structure from now on (``options``:
-        :meth:`~tdfd.model.structure_pooling.StructurePooling.to_config`; ``None``: no pooling),
+        """Add the stage that pools the tiles along the depth structure, its map beside the
+        tiles' own (``options``: :meth:`~tdfd.model.structure_pooling.StructurePooling.to_config`;
+        ``None``: no pooling),
         with the pooled depth's scale map (``None``: identity until
         :mod:`training.calibrate_scale` fits one); returns ``self``. The weights do not depend on it.
 
@@ -434,7 +453,7 @@ class DFDModel(nn.Module):
 
     def head(self, features: torch.Tensor, inverse_depth: torch.Tensor, rel_error: torch.Tensor
              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The learned stage on precomputed features, then the structure pooling if the model has it.
+        """The learned stage on precomputed features: each tile's own estimate (no structure pooling).
 
         Args:
             features: :meth:`features` output ``(B, C, h, w)``.
@@ -444,16 +463,34 @@ class DFDModel(nn.Module):
         Returns:
             ``(inverse_depth, log_scale, confidence, analytic_inverse_depth)``, each
             ``(B, 1, h, w)``: the refined inverse depth (1/m, inside the extended range), the
-            log Laplace scale of the relative error, the confidence, and the clamped
+            log Laplace scale of the relative error (calibrated), the confidence, and the clamped
             analytic inverse depth.
         """
         q, log_scale, conf, q_a, _ = self.head_with_family(features, inverse_depth, rel_error)
+        return q, log_scale, conf, q_a
+
+    def pool(self, inverse_depth: torch.Tensor, log_scale: torch.Tensor
+             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The structure pooling stage on :meth:`head`'s tiles.
+
+        Args:
+            inverse_depth: the tiles' refined inverse depth ``(B, 1, h, w)`` (1/m).
+            log_scale: their calibrated log scale ``(B, 1, h, w)``.
+
+        Returns:
+            ``(inverse_depth, log_scale, confidence)`` of the pooled map, each ``(B, 1, h, w)``:
+            the pooled inverse depth inside the extended range, its log scale through
+            ``pooled_scale_calibration``, and the confidence of that scale.
+
+        Raises:
+            InputError: the model has no structure pooling.
+        """
         if self.structure_pooling is None:
-            return q, log_scale, conf, q_a
+            raise InputError("the model has no structure pooling (set_structure_pooling)")
         q_lo, q_hi = self.analytic.inv_depth_limits
-        q = self.structure_pooling(q, torch.exp(log_scale)).clamp(q_lo, q_hi)
-        log_scale = self.pooled_scale_calibration(log_scale, q).clamp(*_LOG_SCALE_BOUNDS)
-        return q, log_scale, self._confidence(log_scale), q_a
+        q = self.structure_pooling(inverse_depth, torch.exp(log_scale)).clamp(q_lo, q_hi)
+        pooled_log = self.pooled_scale_calibration(log_scale, q).clamp(*_LOG_SCALE_BOUNDS)
+        return q, pooled_log, self._confidence(pooled_log)
 
     def head_with_family(self, features: torch.Tensor, inverse_depth: torch.Tensor, rel_error: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
@@ -481,12 +518,22 @@ class DFDModel(nn.Module):
         ``psf_family_codes`` as in :meth:`features`)."""
         feats, r = self.features(image_f1, image_f2, psf_family_codes)
         q, log_scale, conf, q_a = self.head(feats, r.inverse_depth, r.rel_error)
-        return RefinedResult(depth=1.0 / q, confidence=conf, depth_analytic=1.0 / q_a, inverse_depth=q,
-                             log_scale=log_scale, features=feats, analytic=r)
+        out = RefinedResult(depth=1.0 / q, confidence=conf, depth_analytic=1.0 / q_a, inverse_depth=q,
+                            log_scale=log_scale, features=feats, analytic=r)
+        if self.structure_pooling is not None:
+            qp, log_p, conf_p = self.pool(q, log_scale)
+            out.depth_pooled, out.confidence_pooled, out.inverse_depth_pooled, out.log_scale_pooled = \
+                1.0 / qp, conf_p, qp, log_p
+        return out
 
-    def forward(self, image_f1: torch.Tensor, image_f2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(self, image_f1: torch.Tensor, image_f2: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``(depth, confidence, depth_analytic)``, the ONNX contract's outputs
+        (:data:`tdfd.contract.OUTPUT_NAMES`), then ``(depth_pooled, confidence_pooled)``
+        (:data:`tdfd.contract.POOLED_OUTPUT_NAMES`) for a model with the structure pooling."""
         r = self.analyse(image_f1, image_f2)
-        return r.depth, r.confidence, r.depth_analytic
+        if r.depth_pooled is None:
+            return r.depth, r.confidence, r.depth_analytic
+        return r.depth, r.confidence, r.depth_analytic, r.depth_pooled, r.confidence_pooled
 
     # -------------------------------------------------------------- persistence
     @torch.no_grad()

@@ -22,9 +22,21 @@ constant fit has on them; a small ridge on the non-constant terms keeps the fit 
 the window holds too few tiles (a grid under 3 tiles a side: there the result tends to the
 weighted mean).
 
+A quadratic's three curvature terms also fit part of the noise, which costs a planar surface
+(a fronto-parallel or slanted face) accuracy that a plane would keep. With ``curvature_test``
+``tau > 0`` each tile chooses, after the last pass: the plane through the same weights unless
+the curvature terms lower the fit's robust chi-square,
+
+``chi^2 = sum_j w'_j ((q_j - p_j) / q_i)^2 / 2``,  ``w'_j = exp(-z_j^2 / 2) / (b_j^2 + f^2)``
+
+(the squared residuals in units of the tiles' Laplace variance ``2 b^2``, ``z_j`` against the
+quadratic), by more than ``tau``: a local model selection, the F-test's criterion (Cleveland &
+Devlin 1988 choose the local degree the same way). A curved surface keeps its quadratic.
+
 Everything is convolutions with fixed kernels (gathering the window, forming the normal
-equations) and an unrolled Cholesky solve of the small normal equations, element-wise per
-tile: no data-dependent control flow, so it exports to ONNX as plain operators.
+equations) and an unrolled Gauss-Jordan solve of the small normal equations, element-wise per
+tile, and the curvature test a ``where``: no data-dependent control flow, so it exports to ONNX
+as plain operators.
 
 Example:
     >>> import torch
@@ -53,7 +65,7 @@ from ..errors import InputError, NonFiniteError, RangeError, ShapeError
 __all__ = ["pool_inverse_depth", "StructurePooling", "POOLING_KEYS"]
 
 #: keys of the stage's JSON description (:meth:`StructurePooling.to_config`)
-POOLING_KEYS = ("radius", "degree", "kernel_width", "iterations", "scale_floor", "ridge")
+POOLING_KEYS = ("radius", "degree", "kernel_width", "iterations", "scale_floor", "ridge", "curvature_test")
 
 _PIVOT_FLOOR = 1e-9
 
@@ -101,7 +113,7 @@ def _solve_spd(system: torch.Tensor) -> torch.Tensor:
 
 def pool_inverse_depth(inverse_depth: torch.Tensor, scale: torch.Tensor, radius: int = 2, degree: int = 2,
                        kernel_width: float = 2.5, iterations: int = 2, scale_floor: float = 0.005,
-                       ridge: float = 1e-3) -> torch.Tensor:
+                       ridge: float = 1e-3, curvature_test: float = 0.0) -> torch.Tensor:
     """Robust, precision-weighted local polynomial fit of the tile inverse depths (module docstring).
 
     Args:
@@ -113,6 +125,9 @@ def pool_inverse_depth(inverse_depth: torch.Tensor, scale: torch.Tensor, radius:
         iterations: reweighting passes (>= 1).
         scale_floor: ``f`` (> 0), added in quadrature to every scale.
         ridge: penalty on the non-constant terms, relative to the window's total weight (>= 0).
+        curvature_test: ``tau`` (>= 0; degree 2 only): the plane through the last pass's weights
+            wherever the curvature terms lower the robust chi-square by ``tau`` or less (module
+            docstring); 0: the quadratic everywhere.
 
     Returns:
         ``(B, 1, h, w)``: the fitted inverse depth at each tile, 1/m.
@@ -126,7 +141,7 @@ def pool_inverse_depth(inverse_depth: torch.Tensor, scale: torch.Tensor, radius:
     if inverse_depth.dim() != 4 or inverse_depth.shape[1] != 1 or scale.shape != inverse_depth.shape:
         raise ShapeError(f"inverse_depth and scale must be equal (B, 1, h, w) tensors, got "
                          f"{tuple(inverse_depth.shape)} and {tuple(scale.shape)}")
-    _check_options(radius, degree, kernel_width, iterations, scale_floor, ridge)
+    _check_options(radius, degree, kernel_width, iterations, scale_floor, ridge, curvature_test)
     if not is_exporting():
         if not bool(torch.isfinite(inverse_depth).all() and torch.isfinite(scale).all()):
             raise NonFiniteError("inverse_depth and scale must be finite (NaN or inf found)")
@@ -158,11 +173,21 @@ def pool_inverse_depth(inverse_depth: torch.Tensor, scale: torch.Tensor, radius:
         right = F.conv2d(weight * (q_win - q), rhs_k).unsqueeze(2)  # relative to the centre: small numbers
         coeffs = _solve_spd(torch.cat([matrix, right], 2))
         fit = q + F.conv2d(coeffs, predict_k)
-    return fit[:, centre_index:centre_index + 1]
+    centre = fit[:, centre_index:centre_index + 1]
+    if curvature_test <= 0 or degree < 2:
+        return centre
+    # the plane through the same weights: the normal equations' leading 3x3 block
+    plane_coeffs = _solve_spd(torch.cat([matrix[:, :3, :3], right[:, :3]], 2))
+    plane = q + F.conv2d(plane_coeffs, predict_k[:, :3])
+    kept = inside * torch.exp(-0.5 * ((q_win - fit) / width) ** 2) / (b_win * b_win + scale_floor * scale_floor)
+    chi_quadratic = (kept * ((q_win - fit) / q) ** 2).sum(1, keepdim=True)
+    chi_plane = (kept * ((q_win - plane) / q) ** 2).sum(1, keepdim=True)
+    curved = 0.5 * (chi_plane - chi_quadratic) > curvature_test  # Laplace: the variance is 2 b^2
+    return torch.where(curved, centre, plane[:, centre_index:centre_index + 1])
 
 
 def _check_options(radius: int, degree: int, kernel_width: float, iterations: int, scale_floor: float,
-                   ridge: float) -> None:
+                   ridge: float, curvature_test: float = 0.0) -> None:
     if not isinstance(radius, int) or radius < 1:
         raise InputError(f"pooling radius must be an integer >= 1 (tiles), got {radius!r}")
     if degree not in (0, 1, 2):
@@ -172,7 +197,9 @@ def _check_options(radius: int, degree: int, kernel_width: float, iterations: in
     if not kernel_width > 0 or not scale_floor > 0 or not ridge >= 0:
         raise InputError(f"pooling needs kernel_width > 0, scale_floor > 0 and ridge >= 0, got {kernel_width!r}, "
                          f"{scale_floor!r}, {ridge!r}")
-    if not all(math.isfinite(float(v)) for v in (kernel_width, scale_floor, ridge)):
+    if not curvature_test >= 0:
+        raise InputError(f"pooling curvature_test must be >= 0 (0: off), got {curvature_test!r}")
+    if not all(math.isfinite(float(v)) for v in (kernel_width, scale_floor, ridge, curvature_test)):
         raise InputError("pooling options must be finite")
 
 
@@ -180,7 +207,7 @@ class StructurePooling(nn.Module):
     """:func:`pool_inverse_depth` as a module with its options fixed (no parameters).
 
     Args:
-        radius, degree, kernel_width, iterations, scale_floor, ridge: as in
+        radius, degree, kernel_width, iterations, scale_floor, ridge, curvature_test: as in
             :func:`pool_inverse_depth`.
 
     Shape:
@@ -197,16 +224,18 @@ class StructurePooling(nn.Module):
     """
 
     def __init__(self, radius: int = 2, degree: int = 2, kernel_width: float = 2.5, iterations: int = 2,
-                 scale_floor: float = 0.005, ridge: float = 1e-3) -> None:
+                 scale_floor: float = 0.005, ridge: float = 1e-3, curvature_test: float = 0.0) -> None:
         super().__init__()
-        _check_options(radius, degree, kernel_width, iterations, scale_floor, ridge)
+        _check_options(radius, degree, kernel_width, iterations, scale_floor, ridge, curvature_test)
         self.radius, self.degree, self.iterations = radius, degree, iterations
         self.kernel_width, self.scale_floor, self.ridge = float(kernel_width), float(scale_floor), float(ridge)
+        self.curvature_test = float(curvature_test)
 
     def to_config(self) -> dict[str, Any]:
         """The options as a JSON-serialisable dict (keys :data:`POOLING_KEYS`)."""
         return {"radius": self.radius, "degree": self.degree, "kernel_width": self.kernel_width,
-                "iterations": self.iterations, "scale_floor": self.scale_floor, "ridge": self.ridge}
+                "iterations": self.iterations, "scale_floor": self.scale_floor, "ridge": self.ridge,
+                "curvature_test": self.curvature_test}
 
     @classmethod
     def from_config(cls, cfg: dict[str, Any]) -> "StructurePooling":
@@ -222,4 +251,4 @@ class StructurePooling(nn.Module):
 
     def forward(self, inverse_depth: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
         return pool_inverse_depth(inverse_depth, scale, self.radius, self.degree, self.kernel_width,
-                                  self.iterations, self.scale_floor, self.ridge)
+                                  self.iterations, self.scale_floor, self.ridge, self.curvature_test)
