@@ -294,6 +294,9 @@ def test_onnx_export_carries_the_pooling(tmp_path):
     assert res.depth_map[0] is res.depth_pooled
     full = res.at_full_resolution()
     assert full.depth_pooled.shape == (224, 288) and full.confidence_pooled.shape == (224, 288)
+    # a pair that is no DFD pair (the lens did not move): no confidence in either map
+    same = rt(a, a)
+    assert same.problem and not same.confidence.any() and not same.confidence_pooled.any()
     # a pooled output that disagrees with torch is caught, the tiles' being right
     model.set_structure_pooling({"radius": 1}, {"log_b": [-6.0, -3.0], "log_b_calibrated": [-6.5, -3.2]})
     with pytest.raises(ModelError, match="_pooled"):
