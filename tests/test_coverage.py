@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import onnx
@@ -174,3 +175,22 @@ def test_shipped_model_states_its_coverage(shipped_onnx):
     assert np.allclose(cov["sigma1_px"], [-3.85, 1.65], atol=0.01)
     rt = DepthRuntime(shipped_onnx, threads=1, camera=REF.replace(depth_range_m=(0.35, 0.9)))
     assert rt.camera.depth_range_m == (0.35, 0.9)
+
+
+def test_the_pooled_map_takes_the_offset_cameras_depth_too(tmp_path):
+    """The shipped file's structure-pooled map follows the camera's depth convention as the tiles do."""
+    path = Path(__file__).resolve().parents[1] / "models" / "reference.onnx"
+    cam = REF.replace(fixed_focal_length_m=0.0249, depth_range_m=(0.34, 0.7), name="stronger-f0")
+    plain = DepthRuntime(path, threads=1)
+    shifted = DepthRuntime(path, threads=1, camera=CameraFile(cam).write(tmp_path / "f0.json"))
+    assert plain.has_pooled and shifted.has_pooled
+    offset = shifted.inverse_depth_offset_dpt
+    rng = np.random.default_rng(4)
+    f1, f2 = (rng.random((192, 256)).astype(np.float32) for _ in range(2))
+    a, b = plain(f1, f2), shifted(f1, f2)
+    q_model, q_cam = 1 / a.depth_pooled.astype(np.float64), 1 / b.depth_pooled.astype(np.float64)
+    inside = (q_model - offset > 1 / 1.4) & (q_model - offset < 2 / 0.34)
+    assert inside.any()
+    np.testing.assert_allclose(q_cam[inside], q_model[inside] - offset, rtol=1e-5)
+    np.testing.assert_array_equal(b.confidence_pooled[inside], a.confidence_pooled[inside])
+    assert np.all(b.confidence_pooled[~inside] == 0)
