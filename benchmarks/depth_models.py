@@ -117,8 +117,9 @@ def load_depth_model(path: str | Path, threads: int = 2, calibrated: bool = True
     model = DFDModel.load(p).eval()
     if not calibrated:
         model.scale_calibration = ScaleCalibration()
+    if not calibrated or output == "tiles":  # the stage's map is not scored: do not compute it
         model.set_structure_pooling(None)
-    pooled = model.structure_pooling is not None and output == "map"
+    pooled = model.structure_pooling is not None
 
     def pick(r) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         depth, conf = r.depth_map if pooled else (r.depth, r.confidence)

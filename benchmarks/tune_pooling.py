@@ -52,9 +52,11 @@ def collect_tiles(model: DFDModel, planes: int, scenes: int) -> dict[str, dict[s
         parts: dict[str, list[torch.Tensor]] = {"q": [], "log_b": [], "true": [], "edge": []}
         for start in tqdm(range(0, count, chunk), desc=name, mininterval=10.0):
             batch = ds.batch(list(range(start, min(count, start + chunk))))
-            r = model.analyse(batch["image_f1"].float(), batch["image_f2"].float())
-            parts["q"].append(r.inverse_depth)
-            parts["log_b"].append(r.log_scale)
+            # the tiles' stage only: a model's own pooling, if it has one, is not needed here
+            feats, r = model.features(batch["image_f1"].float(), batch["image_f2"].float())
+            q, log_b, _, _ = model.head(feats, r.inverse_depth, r.rel_error)
+            parts["q"].append(q)
+            parts["log_b"].append(log_b)
             parts["true"].append(batch["tile_depth"].float())
             parts["edge"].append(torch.stack([edge_tiles(d[0].float(), model.tile, model.stride)
                                               for d in batch["depth"]])[:, None])

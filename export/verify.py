@@ -289,30 +289,31 @@ def verify_onnx(path: str | Path, model: nn.Module | None = None,
     sess = _session(path, threads, optimization or DEFAULT_OPTIMIZATION)
     worst: tuple[float, str] = (-1.0, "")
     failed = False
+    names = [o.name for o in sess.get_outputs()]
     with _export_mode(model), torch.no_grad():
         for h, w in sizes:
             for b in batches:
                 i1, i2 = realistic_pairs(model.camera, b, h, w, seed=seed + 7919 * h + w + 104729 * b)
                 ref = [t.detach().cpu().numpy() for t in model(i1, i2)]
-                names = [o.name for o in sess.get_outputs()]
                 if len(ref) != len(names):
                     raise ModelError(f"the graph has outputs {names}, the torch model returns {len(ref)} tensors")
                 got = sess.run(names, {INPUT_NAMES[0]: i1.numpy(), INPUT_NAMES[1]: i2.numpy()})
                 expect_shape = (b, 1, *grid_shape(h, w, int(model.tile), int(model.stride)))
                 conf_ref = ref[names.index("confidence")]
-                trusted = conf_ref >= min_confidence
+                trusted_tiles = conf_ref >= min_confidence
                 errs = {}
                 checks = []
                 for name, r, o in zip(names, ref, got):
                     # a pooled output is trusted where the pooled confidence is
-                    trusted = (ref[names.index("confidence_pooled")] if name.endswith("_pooled") else conf_ref
-                               ) >= min_confidence
+                    trusted = (ref[names.index("confidence_pooled")] >= min_confidence if name.endswith("_pooled")
+                               else trusted_tiles)
+                    conf_like = name.startswith("confidence")
                     if tuple(o.shape) != expect_shape or tuple(r.shape) != expect_shape:
                         raise ModelError(f"{name} for {b}x1x{h}x{w} has shape ONNX {tuple(o.shape)} / torch "
                                          f"{tuple(r.shape)}, expected {expect_shape}")
                     if not np.isfinite(o).all():
                         raise ModelError(f"ONNX {name} for {b}x1x{h}x{w} contains NaN or inf")
-                    if name.startswith("confidence"):
+                    if conf_like:
                         e = np.abs(o.astype(np.float64) - r)
                         checks.append((name, "abs", e, np.ones_like(trusted), conf_atol))
                     else:
@@ -320,7 +321,6 @@ def verify_onnx(path: str | Path, model: nn.Module | None = None,
                         checks.append((name, f"rel (confidence >= {min_confidence:g})", e, trusted, rtol))
                         checks.append((name, "rel (all tiles)", e, np.ones_like(trusted), rtol_all))
                         errs[name + "_all"] = float(e.max())
-                    conf_like = name.startswith("confidence")
                     errs[name] = float(e[trusted].max()) if not conf_like and trusted.any() else (
                         0.0 if not conf_like else float(e.max()))
                 for name, kind, e, mask, tol in checks:
@@ -335,9 +335,8 @@ def verify_onnx(path: str | Path, model: nn.Module | None = None,
                                             f"{float(conf_ref[idx]):.3g}): ONNX {float(o[idx]):.7g} vs torch "
                                             f"{float(r[idx]):.7g}, {kind} error {err:.3g} > {tol:g}")
                     failed |= err > tol
-                trusted = conf_ref >= min_confidence
                 report.cases.append(ParityCase((h, w), b, errs["depth"], errs["depth_analytic"], errs["confidence"],
-                                               errs["depth_all"], errs["depth_analytic_all"], float(trusted.mean())))
+                                               errs["depth_all"], errs["depth_analytic_all"], float(trusted_tiles.mean())))
                 logger.info("parity %dx%d batch %d: %s", h, w, b, errs)
     if failed:
         raise ModelError(f"ONNX Runtime disagrees with torch for {path}: worst {worst[1]}")

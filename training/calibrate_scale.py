@@ -108,7 +108,8 @@ def collect_scale_errors(model: DFDModel, planes: int = 2048, scenes: int = 64, 
     near, far = model.camera.depth_range_m
     out: dict[str, list[torch.Tensor]] = {"scale": [], "error": [], "inverse_depth": [], "border": [], "set": []}
     try:
-        for k, (name, ds, count, chunk) in enumerate(calibration_scene_sets(model, planes, scenes, plane_size, structure_size)):
+        sets = calibration_scene_sets(model, planes, scenes, plane_size, structure_size)
+        for k, (name, ds, count, chunk) in enumerate(sets):
             for start in tqdm(range(0, count, chunk), desc=name, mininterval=10.0):
                 batch = ds.batch(list(range(start, min(count, start + chunk))))
                 r = model.analyse(batch["image_f1"].float(), batch["image_f2"].float())

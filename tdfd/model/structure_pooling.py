@@ -179,7 +179,7 @@ def pool_inverse_depth(inverse_depth: torch.Tensor, scale: torch.Tensor, radius:
     # the plane through the same weights: the normal equations' leading 3x3 block
     plane_coeffs = _solve_spd(torch.cat([matrix[:, :3, :3], right[:, :3]], 2))
     plane = q + F.conv2d(plane_coeffs, predict_k[:, :3])
-    kept = inside * torch.exp(-0.5 * ((q_win - fit) / width) ** 2) / (b_win * b_win + scale_floor * scale_floor)
+    kept = precision * torch.exp(-0.5 * ((q_win - fit) / width) ** 2)  # the last fit's robust weights, unnormalised
     chi_quadratic = (kept * ((q_win - fit) / q) ** 2).sum(1, keepdim=True)
     chi_plane = (kept * ((q_win - plane) / q) ** 2).sum(1, keepdim=True)
     curved = 0.5 * (chi_plane - chi_quadratic) > curvature_test  # Laplace: the variance is 2 b^2
