@@ -391,3 +391,26 @@ def test_the_tuning_tool_scores_options_on_the_calibration_scenes(tmp_path, caps
     for bad in ("{not json", '{"radius": 2}', '[{"radius": 0}]'):
         with pytest.raises(SystemExit):
             tune_pooling.main(["--model", str(tmp_path / "m"), "--options", bad])
+
+
+def test_the_pooled_loss_reaches_the_scales_only_through_the_pooling():
+    """``training.losses.pooled_loss``: the pooled error in units of the tiles' scales; the
+    scales get a gradient through the pooling's weights (a tile that pulls its neighbours' fits
+    off the truth is pushed towards a larger scale, they towards smaller ones) and none through
+    the units."""
+    from training.losses import pooled_loss
+
+    truth = torch.full((1, 1, 5, 5), 0.5, dtype=torch.float64)
+    q = 1 / truth.clone()
+    q[0, 0, 2, 3] *= 1.03  # an outlier within the kernel's reach of its neighbours' fits
+    log_b = torch.full_like(q, math.log(0.01)).requires_grad_(True)
+    pooled = pool_inverse_depth(q, torch.exp(log_b), radius=1, degree=0)
+    loss = pooled_loss(pooled, log_b, truth)
+    expected = ((pooled - 1 / truth).abs() * truth / torch.exp(log_b)).mean()
+    assert torch.allclose(loss.detach(), expected.detach(), rtol=1e-12) and float(loss.detach()) > 0
+    loss.backward()
+    grad = log_b.grad[0, 0]
+    assert float(grad[2, 3]) < 0 and float(grad[2, 3]) == float(grad.min())  # the outlier's scale is pushed up
+    assert bool((grad[1:4, 2:5] > 0).sum() == 8)  # its neighbours' down: they are right
+    direct = log_b.detach().clone().requires_grad_(True)  # a pooled map that does not depend on the scales
+    assert not pooled_loss(pooled.detach(), direct, truth).requires_grad

@@ -142,3 +142,36 @@ def test_threads_setting_applies_on_every_device(tmp_path, monkeypatch, device):
     calls.clear()
     train(_cfg(tmp_path, "default_threads", "threads=0"))
     assert calls == []
+
+
+def test_pooled_loss_trains_the_tiles_through_the_structure_pooling(tmp_path):
+    """``optim.pooled_weight``: the pooled map's error joins the loss and the log; with weight 0
+    the stage is invisible to training (bitwise the same weights as a model without it)."""
+    pooling = 'model.structure_pooling={"radius": 1, "curvature_test": 1.0}'
+    extra = ("final_eval=false", "data.reuse=1")
+    plain = _cfg(tmp_path, "plain", *extra)
+    unseen = _cfg(tmp_path, "unseen", pooling, *extra)
+    seen = _cfg(tmp_path, "seen", pooling, "optim.pooled_weight=1.0", *extra)
+    for cfg in (plain, unseen, seen):
+        train(cfg)
+    weights = {c.out_dir: load_file(str(Path(c.out_dir) / "model.safetensors")) for c in (plain, unseen, seen)}
+    a, b, c = weights[plain.out_dir], weights[unseen.out_dir], weights[seen.out_dir]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not all(torch.equal(a[k], c[k]) for k in a)
+    rows = list(csv.DictReader((Path(seen.out_dir) / "train_log.csv").open()))
+    assert all(float(r["pooled"]) > 0 for r in rows if r["loss"])
+    assert float(rows[-1]["val_mre_pooled"]) > 0
+    unseen_rows = list(csv.DictReader((Path(unseen.out_dir) / "train_log.csv").open()))
+    assert not any(r["pooled"] for r in unseen_rows) and unseen_rows[-1]["val_mre_pooled"]
+    plain_rows = list(csv.DictReader((Path(plain.out_dir) / "train_log.csv").open()))
+    assert not plain_rows[-1]["val_mre_pooled"]
+
+
+@pytest.mark.parametrize("settings, match", [
+    (["optim.pooled_weight=-0.5", 'model.structure_pooling={"radius": 1}'], "pooled_weight must be >= 0"),
+    (["optim.pooled_weight=nan", 'model.structure_pooling={"radius": 1}'], "pooled_weight must be >= 0"),
+    (["optim.pooled_weight=0.5"], "needs model.structure_pooling"),
+])
+def test_pooled_weight_is_checked(tmp_path, settings, match):
+    with pytest.raises(ConfigError, match=match):
+        _cfg(tmp_path, "bad", *settings)

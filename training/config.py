@@ -98,9 +98,9 @@ class ModelConfig:
     #: with ``psf_family_input``: an unknown family is inferred from the whole image
     #: (:mod:`tdfd.model.family_inference`), supervised by ``optim.family_weight``
     family_inference: bool = False
-    #: options of the inference-only last stage that pools the tiles along the depth structure
-    #: (:class:`tdfd.model.structure_pooling.StructurePooling`; {} = none); training does not see
-    #: it, the calibration stage fits its output's scale
+    #: options of the last stage that pools the tiles along the depth structure
+    #: (:class:`tdfd.model.structure_pooling.StructurePooling`; {} = none); training sees it only
+    #: through ``optim.pooled_weight``, the calibration stage fits its output's scale
     structure_pooling: dict = field(default_factory=dict)
 
 
@@ -120,6 +120,9 @@ class OptimConfig:
         normaliser_batches: batches used to fit the feature standardisation before step 0.
         family_weight: with ``model.family_inference``, weight of the cross-entropy of the
             image-wide PSF family logits against each sample's true family.
+        pooled_weight: with ``model.structure_pooling``, weight of the pooled map's error in
+            units of the tiles' scales (:func:`training.losses.pooled_loss`) beside the tiles'
+            loss; 0 = training does not see the pooling.
     """
 
     steps: int = 2000
@@ -131,6 +134,7 @@ class OptimConfig:
     l1_weight: float = 0.2
     normaliser_batches: int = 4
     family_weight: float = 0.1
+    pooled_weight: float = 0.0
 
 
 @dataclass
@@ -426,6 +430,9 @@ def validate_config(cfg: TrainConfig) -> None:
         (cfg.model.psf_family_input or not cfg.model.family_inference,
          "model.family_inference needs model.psf_family_input = true"),
         (cfg.optim.family_weight >= 0, "optim.family_weight must be >= 0"),
+        (math.isfinite(cfg.optim.pooled_weight) and cfg.optim.pooled_weight >= 0, "optim.pooled_weight must be >= 0"),
+        (cfg.optim.pooled_weight == 0 or bool(cfg.model.structure_pooling),
+         "optim.pooled_weight > 0 needs model.structure_pooling (the pooled map it trains)"),
         (cfg.calibration.planes >= 1 and cfg.calibration.scenes >= 1, "calibration.planes and scenes must be >= 1"),
         (cfg.calibration.pooled_planes >= 0 and cfg.calibration.pooled_scenes >= 0,
          "calibration.pooled_planes and pooled_scenes must be >= 0 (0: planes, scenes)"),

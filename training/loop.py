@@ -27,7 +27,7 @@ from tdfd.model import DFDModel
 from .calibrate_scale import calibrate_model
 from .config import ConfigError, TrainConfig, config_to_dict
 from .data import Featurizer, FeatureSet, StepBatches, build_model, featurize_dataset, fetch_batch, make_dataset
-from .losses import depth_relative_error, family_loss, laplace_nll, refinement_loss
+from .losses import depth_relative_error, family_loss, laplace_nll, pooled_loss, refinement_loss
 
 __all__ = ["train", "DistInfo", "setup_distributed", "validate", "save_checkpoint", "load_checkpoint",
            "CHECKPOINT_NAME", "LOG_COLUMNS"]
@@ -37,7 +37,7 @@ logger = logging.getLogger("training")
 CHECKPOINT_NAME = "checkpoint_last.pt"
 LOG_COLUMNS = ["step", "time_s", "lr", "loss", "nll", "l1", "train_mre", "samples_per_s", "val_nll",
                "val_mre_refined", "val_mre_analytic", "val_mre_conf_top", "val_mre_conf_bottom", "val_conf_mean",
-               "family_ce", "val_family_acc"]
+               "family_ce", "val_family_acc", "pooled", "val_mre_pooled"]
 
 
 @dataclass
@@ -131,10 +131,12 @@ def load_checkpoint(path: Path, model: DFDModel, opt: torch.optim.Optimizer, sch
 @torch.no_grad()
 def validate(model: DFDModel, data: FeatureSet, device: torch.device, chunk: int = 64) -> dict[str, float]:
     """Held-out metrics: Laplace NLL, median absolute relative depth error (refined and
-    analytic), median error in the top and bottom confidence halves, mean confidence."""
+    analytic), median error in the top and bottom confidence halves, mean confidence; the
+    image family verdict's accuracy (with the family inference) and the pooled map's median
+    error (with the structure pooling)."""
     was_training = model.training
     model.eval()
-    errs_r, errs_a, confs, nlls = [], [], [], []
+    errs_r, errs_a, errs_p, confs, nlls = [], [], [], [], []
     hits, labelled = 0, 0
     for b in data.chunks(chunk):
         b = {k: v.to(device) for k, v in b.items()}
@@ -146,6 +148,8 @@ def validate(model: DFDModel, data: FeatureSet, device: torch.device, chunk: int
         nlls.append(laplace_nll(q, log_b, 1.0 / b["tile_depth"]) * q.numel())
         errs_r.append(depth_relative_error(1.0 / q, b["tile_depth"]).flatten().cpu())
         errs_a.append(depth_relative_error(1.0 / q_a, b["tile_depth"]).flatten().cpu())
+        if model.structure_pooling is not None:
+            errs_p.append(depth_relative_error(1.0 / model.pool(q, log_b)[0], b["tile_depth"]).flatten().cpu())
         confs.append(conf.flatten().cpu())
     model.train(was_training)
     er, ea, c = torch.cat(errs_r), torch.cat(errs_a), torch.cat(confs)
@@ -154,7 +158,8 @@ def validate(model: DFDModel, data: FeatureSet, device: torch.device, chunk: int
     return {"val_nll": float(sum(nlls) / er.numel()), "val_mre_refined": float(er.median()),
             "val_mre_analytic": float(ea.median()), "val_mre_conf_top": float(er[order[half:]].median()),
             "val_mre_conf_bottom": float(er[order[:half]].median()) if half else float("nan"),
-            "val_conf_mean": float(c.mean()), **({"val_family_acc": hits / labelled} if labelled else {})}
+            "val_conf_mean": float(c.mean()), **({"val_family_acc": hits / labelled} if labelled else {}),
+            **({"val_mre_pooled": float(torch.cat(errs_p).median())} if errs_p else {})}
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -189,8 +194,8 @@ def _setup_logging(out: Path, is_main: bool) -> logging.Handler | None:
 
 def _new_window() -> dict[str, float]:
     """Running sums of one logging window (losses, error, sample counts) and its start time."""
-    return {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "family": 0.0, "n": 0, "t": time.perf_counter(),
-            "samples": 0, "fresh": 0}
+    return {"loss": 0.0, "nll": 0.0, "l1": 0.0, "mre": 0.0, "family": 0.0, "pooled": 0.0, "n": 0,
+            "t": time.perf_counter(), "samples": 0, "fresh": 0}
 
 
 @torch.no_grad()
@@ -320,6 +325,10 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
             b = {k: v.to(dist.device, non_blocking=True) for k, v in mb.items()}
             q, log_b, _conf, _qa, fam_logits = head(b["features"], b["inverse_depth"], b["rel_error"])
             loss, parts = refinement_loss(q, log_b, b["tile_depth"], cfg.optim.l1_weight)
+            if cfg.optim.pooled_weight > 0:  # the map pooled along the depth structure, scored too
+                pooled = pooled_loss(model.pool(q, log_b)[0], log_b, b["tile_depth"])
+                loss = loss + cfg.optim.pooled_weight * pooled
+                window["pooled"] += float(pooled.detach())
             if fam_logits is not None and cfg.optim.family_weight > 0:
                 fam = family_loss(fam_logits, b["family_class"])
                 loss = loss + cfg.optim.family_weight * fam
@@ -359,6 +368,8 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
                     bar.set_postfix(loss=f"{row['loss']:.3f}", mre=f"{row['train_mre']:.4f}")
                     if model.refine.family is not None:
                         row["family_ce"] = window["family"] / n
+                    if cfg.optim.pooled_weight > 0:
+                        row["pooled"] = window["pooled"] / n
                     window = _new_window()
                 if step % cfg.val_every == 0 or last:
                     last_val = validate(model, val, dist.device)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["relative_error", "laplace_nll", "refinement_loss", "family_loss", "depth_relative_error"]
+__all__ = ["relative_error", "laplace_nll", "refinement_loss", "pooled_loss", "family_loss", "depth_relative_error"]
 
 
 def relative_error(q: torch.Tensor, q_true: torch.Tensor) -> torch.Tensor:
@@ -50,6 +50,30 @@ def refinement_loss(q: torch.Tensor, log_b: torch.Tensor, tile_depth: torch.Tens
     l1 = relative_error(q, q_true).abs().mean()
     loss = nll + l1_weight * l1 if l1_weight > 0 else nll
     return loss, {"nll": float(nll.detach()), "l1": float(l1.detach())}
+
+
+def pooled_loss(q_pooled: torch.Tensor, log_b: torch.Tensor, tile_depth: torch.Tensor) -> torch.Tensor:
+    """The structure-pooled map's loss: its absolute relative inverse-depth error in units of each
+    tile's own predicted scale, ``mean(|e_pooled| / b)`` with ``b`` held fixed.
+
+    The units make the term comparable with :func:`laplace_nll`'s (whose gradient in ``q`` is
+    ``sign(e) / b`` per tile); holding ``b`` fixed leaves the scale to the NLL, so the scale stays
+    the tile's own calibrated error, while the term still reaches the scales through the pooling's
+    weights (:mod:`tdfd.model.structure_pooling`): the CNN learns tiles and scales that pool well.
+
+    Args:
+        q_pooled: the pooled inverse depth ``(B, 1, h, w)`` in 1/m (:meth:`tdfd.model.DFDModel.pool`).
+        log_b: the tiles' log Laplace scale ``(B, 1, h, w)`` (not differentiated here).
+        tile_depth: true per-tile depth ``(B, 1, h, w)`` in metres.
+
+    Example:
+        >>> import torch
+        >>> qp = torch.tensor([2.02, 1.98]); lb = torch.log(torch.tensor([0.01, 0.02]))
+        >>> round(float(pooled_loss(qp, lb, torch.tensor([0.5, 0.5]))), 4)  # (1 + 0.5) / 2
+        0.75
+    """
+    e = relative_error(q_pooled, 1.0 / tile_depth).abs()
+    return (e * torch.exp(-log_b.detach())).mean()
 
 
 def family_loss(logits: torch.Tensor, family_class: torch.Tensor, ignore_index: int = -1) -> torch.Tensor:

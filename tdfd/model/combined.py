@@ -27,8 +27,9 @@ map of the same form fitted on the pooled errors (``pooled_scale_calibration``).
 to the tiles, it does not replace them: ``depth`` and ``confidence`` stay each tile's own
 estimate, independent of its neighbours' (what the autofocus pools over its ROI), and
 ``depth_pooled`` / ``confidence_pooled`` are the pooled map (:meth:`DFDModel.pool`; the
-optional ONNX outputs :data:`tdfd.contract.POOLED_OUTPUT_NAMES`). Training never sees the stage
-(:meth:`DFDModel.head_with_family` is the CNN as trained).
+optional ONNX outputs :data:`tdfd.contract.POOLED_OUTPUT_NAMES`). Training sees the stage only
+through the option ``optim.pooled_weight`` (0 in the shipped recipe; :meth:`DFDModel.head_with_family`
+is the CNN as trained).
 
 With the refinement head at zero (a fresh model) ``depth`` equals ``depth_analytic``
 exactly. The forward pass has no data-dependent Python control flow and no ``torch.fft``,
