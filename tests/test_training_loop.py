@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 import json
 import os
 import subprocess
@@ -165,6 +166,35 @@ def test_pooled_loss_trains_the_tiles_through_the_structure_pooling(tmp_path):
     assert not any(r["pooled"] for r in unseen_rows) and unseen_rows[-1]["val_mre_pooled"]
     plain_rows = list(csv.DictReader((Path(plain.out_dir) / "train_log.csv").open()))
     assert not plain_rows[-1]["val_mre_pooled"]
+
+
+def test_pooled_loss_on_the_scales_only_leaves_the_depths_to_the_tiles_loss():
+    """``optim.pooled_scales_only``: the loss's gradient in the tiles' depths is the tiles' loss's
+    alone, its gradient in their scales is not; without the option both carry the pooled term."""
+    from tdfd import Camera
+    from tdfd.model import DFDModel
+    from training.config import OptimConfig
+    from training.loop import training_loss
+
+    model = DFDModel(Camera.preset("reference"), hidden=8, blocks=1, structure_pooling={"radius": 1})
+    gen = torch.Generator().manual_seed(3)
+    truth = 0.4 + 0.4 * torch.rand(2, 1, 5, 6, generator=gen)
+    q0 = (1 / truth) * (1 + 0.03 * torch.randn(truth.shape, generator=gen))
+    lb0 = math.log(0.02) + 0.5 * torch.randn(truth.shape, generator=gen)
+    batch = {"tile_depth": truth}
+
+    def grads(**kw):
+        q, lb = q0.clone().requires_grad_(True), lb0.clone().requires_grad_(True)
+        loss, parts = training_loss(model, OptimConfig(family_weight=0.0, **kw), q, lb, None, batch)
+        loss.backward()
+        return q.grad, lb.grad, parts
+
+    q_alone, lb_alone, parts = grads()
+    q_scales, lb_scales, parts_scales = grads(pooled_weight=1.0, pooled_scales_only=True)
+    q_both, lb_both, _ = grads(pooled_weight=1.0)
+    assert "pooled" not in parts and parts_scales["pooled"] > 0
+    assert torch.equal(q_scales, q_alone) and not torch.allclose(lb_scales, lb_alone)
+    assert not torch.allclose(q_both, q_alone) and torch.allclose(lb_both, lb_scales)
 
 
 @pytest.mark.parametrize("settings, match", [

@@ -123,6 +123,9 @@ class OptimConfig:
         pooled_weight: with ``model.structure_pooling``, weight of the pooled map's error in
             units of the tiles' scales (:func:`training.losses.pooled_loss`) beside the tiles'
             loss; 0 = training does not see the pooling.
+        pooled_scales_only: with ``pooled_weight``, the pooled loss reaches the CNN only through
+            the tiles' scales (the pooling's weights), not through their depths, so the tiles'
+            depths answer to their own loss alone.
     """
 
     steps: int = 2000
@@ -135,6 +138,7 @@ class OptimConfig:
     normaliser_batches: int = 4
     family_weight: float = 0.1
     pooled_weight: float = 0.0
+    pooled_scales_only: bool = False
 
 
 @dataclass

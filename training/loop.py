@@ -25,11 +25,11 @@ from tdfd.atomic_io import atomic_writer, remove_orphans
 from tdfd.model import DFDModel
 
 from .calibrate_scale import calibrate_model
-from .config import ConfigError, TrainConfig, config_to_dict
+from .config import ConfigError, OptimConfig, TrainConfig, config_to_dict
 from .data import Featurizer, FeatureSet, StepBatches, build_model, featurize_dataset, fetch_batch, make_dataset
 from .losses import depth_relative_error, family_loss, laplace_nll, pooled_loss, refinement_loss
 
-__all__ = ["train", "DistInfo", "setup_distributed", "validate", "save_checkpoint", "load_checkpoint",
+__all__ = ["train", "training_loss", "DistInfo", "setup_distributed", "validate", "save_checkpoint", "load_checkpoint",
            "CHECKPOINT_NAME", "LOG_COLUMNS"]
 
 logger = logging.getLogger("training")
@@ -125,6 +125,32 @@ def load_checkpoint(path: Path, model: DFDModel, opt: torch.optim.Optimizer, sch
     if torch.cuda.is_available() and state["rng_cuda"]:
         torch.cuda.set_rng_state_all(state["rng_cuda"])
     return {"step": int(state["step"]), "config": json.loads(state["config_json"]), "extra": json.loads(state["extra_json"])}
+
+
+# ----------------------------------------------------------------------------- the loss
+def training_loss(model: DFDModel, optim: OptimConfig, q: torch.Tensor, log_b: torch.Tensor,
+                  family_logits: torch.Tensor | None, batch: dict[str, torch.Tensor]
+                  ) -> tuple[torch.Tensor, dict[str, float]]:
+    """One step's loss on :meth:`DFDModel.head_with_family`'s outputs: the tiles' loss
+    (:func:`refinement_loss`), the structure-pooled map's (:func:`pooled_loss`, with
+    ``optim.pooled_weight``; through the scales alone with ``optim.pooled_scales_only``) and the
+    image family's (:func:`family_loss`, with ``optim.family_weight``).
+
+    Returns:
+        ``(loss, parts)``: ``parts`` the detached ``nll`` and ``l1``, and ``pooled`` and
+        ``family`` where those terms are on.
+    """
+    loss, parts = refinement_loss(q, log_b, batch["tile_depth"], optim.l1_weight)
+    if optim.pooled_weight > 0:  # the map pooled along the depth structure, scored too
+        q_in = q.detach() if optim.pooled_scales_only else q
+        pooled = pooled_loss(model.pool(q_in, log_b)[0], log_b, batch["tile_depth"])
+        loss = loss + optim.pooled_weight * pooled
+        parts["pooled"] = float(pooled.detach())
+    if family_logits is not None and optim.family_weight > 0:
+        fam = family_loss(family_logits, batch["family_class"])
+        loss = loss + optim.family_weight * fam
+        parts["family"] = float(fam.detach())
+    return loss, parts
 
 
 # ----------------------------------------------------------------------------- validation
@@ -324,15 +350,9 @@ def _train(cfg: TrainConfig, resume: bool, dist: DistInfo, out: Path, t_start: f
                 mb = {k: v[idx] for k, v in stacked.items()}
             b = {k: v.to(dist.device, non_blocking=True) for k, v in mb.items()}
             q, log_b, _conf, _qa, fam_logits = head(b["features"], b["inverse_depth"], b["rel_error"])
-            loss, parts = refinement_loss(q, log_b, b["tile_depth"], cfg.optim.l1_weight)
-            if cfg.optim.pooled_weight > 0:  # the map pooled along the depth structure, scored too
-                pooled = pooled_loss(model.pool(q, log_b)[0], log_b, b["tile_depth"])
-                loss = loss + cfg.optim.pooled_weight * pooled
-                window["pooled"] += float(pooled.detach())
-            if fam_logits is not None and cfg.optim.family_weight > 0:
-                fam = family_loss(fam_logits, b["family_class"])
-                loss = loss + cfg.optim.family_weight * fam
-                window["family"] += float(fam.detach())
+            loss, parts = training_loss(model, cfg.optim, q, log_b, fam_logits, b)
+            window["pooled"] += parts.get("pooled", 0.0)
+            window["family"] += parts.get("family", 0.0)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.optim.grad_clip > 0:
