@@ -226,6 +226,10 @@ def test_model_pools_its_own_depth_and_calibrates_the_pooled_scale(tmp_path):
     # the training path never pools
     out = model.head_with_family(pooled.features, pooled.analytic.inverse_depth, pooled.analytic.rel_error)
     assert torch.allclose(out[0], plain.inverse_depth)
+    # what training scores with optim.pooled_weight: the pooled map's depth, bitwise
+    with torch.no_grad():
+        assert torch.equal(model.pooled_inverse_depth(pooled.inverse_depth, pooled.log_scale),
+                           pooled.inverse_depth_pooled)
     # the JSON round trip
     model.save(tmp_path / "m")
     desc = DFDModel.read_description(tmp_path / "m")
@@ -240,6 +244,8 @@ def test_model_pools_its_own_depth_and_calibrates_the_pooled_scale(tmp_path):
         assert torch.equal(model.analyse(i1, i2).depth, plain.depth)
     with pytest.raises(InputError, match="no structure pooling"):
         model.pool(plain.inverse_depth, plain.log_scale)
+    with pytest.raises(InputError, match="no structure pooling"):
+        model.pooled_inverse_depth(plain.inverse_depth, plain.log_scale)
 
 
 def test_a_pooled_calibration_without_pooling_is_refused(tmp_path):

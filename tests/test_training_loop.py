@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import csv
-import math
 import json
+import math
 import os
 import subprocess
 import sys
@@ -155,8 +155,7 @@ def test_pooled_loss_trains_the_tiles_through_the_structure_pooling(tmp_path):
     seen = _cfg(tmp_path, "seen", pooling, "optim.pooled_weight=1.0", *extra)
     for cfg in (plain, unseen, seen):
         train(cfg)
-    weights = {c.out_dir: load_file(str(Path(c.out_dir) / "model.safetensors")) for c in (plain, unseen, seen)}
-    a, b, c = weights[plain.out_dir], weights[unseen.out_dir], weights[seen.out_dir]
+    a, b, c = (load_file(str(Path(cfg.out_dir) / "model.safetensors")) for cfg in (plain, unseen, seen))
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert not all(torch.equal(a[k], c[k]) for k in a)
     rows = list(csv.DictReader((Path(seen.out_dir) / "train_log.csv").open()))

@@ -143,7 +143,7 @@ def training_loss(model: DFDModel, optim: OptimConfig, q: torch.Tensor, log_b: t
     loss, parts = refinement_loss(q, log_b, batch["tile_depth"], optim.l1_weight)
     if optim.pooled_weight > 0:  # the map pooled along the depth structure, scored too
         q_in = q.detach() if optim.pooled_scales_only else q
-        pooled = pooled_loss(model.pool(q_in, log_b)[0], log_b, batch["tile_depth"])
+        pooled = pooled_loss(model.pooled_inverse_depth(q_in, log_b), log_b, batch["tile_depth"])
         loss = loss + optim.pooled_weight * pooled
         parts["pooled"] = float(pooled.detach())
     if family_logits is not None and optim.family_weight > 0:
@@ -175,7 +175,8 @@ def validate(model: DFDModel, data: FeatureSet, device: torch.device, chunk: int
         errs_r.append(depth_relative_error(1.0 / q, b["tile_depth"]).flatten().cpu())
         errs_a.append(depth_relative_error(1.0 / q_a, b["tile_depth"]).flatten().cpu())
         if model.structure_pooling is not None:
-            errs_p.append(depth_relative_error(1.0 / model.pool(q, log_b)[0], b["tile_depth"]).flatten().cpu())
+            q_p = model.pooled_inverse_depth(q, log_b)
+            errs_p.append(depth_relative_error(1.0 / q_p, b["tile_depth"]).flatten().cpu())
         confs.append(conf.flatten().cpu())
     model.train(was_training)
     er, ea, c = torch.cat(errs_r), torch.cat(errs_a), torch.cat(confs)

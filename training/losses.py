@@ -62,7 +62,7 @@ def pooled_loss(q_pooled: torch.Tensor, log_b: torch.Tensor, tile_depth: torch.T
     weights (:mod:`tdfd.model.structure_pooling`): the CNN learns tiles and scales that pool well.
 
     Args:
-        q_pooled: the pooled inverse depth ``(B, 1, h, w)`` in 1/m (:meth:`tdfd.model.DFDModel.pool`).
+        q_pooled: the pooled inverse depth ``(B, 1, h, w)`` in 1/m (:meth:`tdfd.model.DFDModel.pooled_inverse_depth`).
         log_b: the tiles' log Laplace scale ``(B, 1, h, w)`` (not differentiated here).
         tile_depth: true per-tile depth ``(B, 1, h, w)`` in metres.
 

@@ -486,12 +486,21 @@ class DFDModel(nn.Module):
         Raises:
             InputError: the model has no structure pooling.
         """
+        q = self.pooled_inverse_depth(inverse_depth, log_scale)
+        pooled_log = self.pooled_scale_calibration(log_scale, q).clamp(*_LOG_SCALE_BOUNDS)
+        return q, pooled_log, self._confidence(pooled_log)
+
+    def pooled_inverse_depth(self, inverse_depth: torch.Tensor, log_scale: torch.Tensor) -> torch.Tensor:
+        """:meth:`pool`'s depth alone, without its scale and confidence (what training scores):
+        the pooled inverse depth ``(B, 1, h, w)`` (1/m) inside the extended range.
+
+        Raises:
+            InputError: the model has no structure pooling.
+        """
         if self.structure_pooling is None:
             raise InputError("the model has no structure pooling (set_structure_pooling)")
         q_lo, q_hi = self.analytic.inv_depth_limits
-        q = self.structure_pooling(inverse_depth, torch.exp(log_scale)).clamp(q_lo, q_hi)
-        pooled_log = self.pooled_scale_calibration(log_scale, q).clamp(*_LOG_SCALE_BOUNDS)
-        return q, pooled_log, self._confidence(pooled_log)
+        return self.structure_pooling(inverse_depth, torch.exp(log_scale)).clamp(q_lo, q_hi)
 
     def head_with_family(self, features: torch.Tensor, inverse_depth: torch.Tensor, rel_error: torch.Tensor
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
