@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -54,6 +55,24 @@ def _list(text: str) -> list[str]:
     return [t for t in text.replace(",", " ").split() if t]
 
 
+def _families(text: str) -> list[str] | dict[str, float]:
+    """``a,b,c`` (drawn uniformly) or ``a:3,b:1.5,c:1`` (relative weights; every family named
+    with one)."""
+    items = _list(text)
+    if not any(":" in t for t in items):
+        return items
+    weights: dict[str, float] = {}
+    for t in items:
+        name, sep, value = t.partition(":")
+        try:
+            weights[name] = float(value) if sep else math.nan
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"family weight must be a number, got {t!r}") from None
+        if not sep or not math.isfinite(weights[name]) or weights[name] < 0:
+            raise argparse.ArgumentTypeError(f"with weights every family needs NAME:WEIGHT (>= 0), got {t!r}")
+    return weights
+
+
 def load_camera(spec: str) -> Camera:
     """A preset name (``reference``, ``paper``) or a path to the contract camera JSON."""
     path = Path(spec)
@@ -75,7 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--start", type=int, default=0, help="first sample index (default 0)")
     p.add_argument("--size", type=parse_size, default=(256, 256), help="N or HxW pixels (default 256)")
     p.add_argument("--camera", default="reference", help="preset (reference, paper) or camera JSON path")
-    p.add_argument("--families", type=_list, default=None, help="texture families, comma separated (default all)")
+    p.add_argument("--families", type=_families, default=None,
+                   help="texture families, comma separated (default all), or with relative weights: bandlimited:3,stripes:1")
     p.add_argument("--psf-shapes", type=_list, default=None, help=f"PSF shapes among {','.join(PSF_SHAPES)} (default all)")
     p.add_argument("--layouts", type=_list, default=None, help=f"depth layouts among {','.join(LAYOUTS)} (default the training mix)")
     p.add_argument("--illumination-prob", type=float, default=None, help="probability of active illumination")

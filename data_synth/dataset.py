@@ -27,7 +27,8 @@ class DefocusPairDataset(torch.utils.data.Dataset):
         camera: camera description (default the ``reference`` preset).
         seed: stream seed; sample ``i`` depends only on ``(seed, i)`` and the options.
         length: nominal length (any non-negative index works).
-        families: texture families (default all of :data:`tdfd.textures.TEXTURE_FAMILIES`).
+        families: texture families (default all of :data:`tdfd.textures.TEXTURE_FAMILIES`), or
+            ``{family: relative weight}`` (:class:`SynthConfig`).
         psf_shapes: PSF shapes among ``"gaussian"``, ``"pillbox"``, ``"beta"`` (default all).
         tile, stride: tile grid of ``tile_depth``.
         noise: apply the sensor model.
@@ -61,7 +62,7 @@ class DefocusPairDataset(torch.utils.data.Dataset):
         base = (config or SynthConfig()).to_dict()
         base.update(tile=tile, stride=stride, noise=noise)
         if families is not None:
-            base["families"] = list(families)
+            base["families"] = dict(families) if isinstance(families, dict) else list(families)
         if psf_shapes is not None:
             base["psf_shapes"] = list(psf_shapes)
         if illumination_prob is not None:

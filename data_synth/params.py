@@ -76,13 +76,22 @@ def choice(g: torch.Generator, options: Sequence[Any], weights: Sequence[float] 
     return options[int(min(np.searchsorted(np.cumsum(w), u, side="right"), len(options) - 1))]
 
 
+def _family_weight(name: Any, weight: Any) -> float:
+    """A texture family's relative weight: a finite number >= 0 (bool refused)."""
+    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not math.isfinite(weight) or weight < 0:
+        raise InputError(f"texture family {name!r} needs a finite weight >= 0, got {weight!r}")
+    return float(weight)
+
+
 @dataclass
 class SynthConfig:
     """Every knob of the synthesiser. Defaults give the training mix.
 
     Scene:
         layouts: relative frequency of each depth layout (:data:`LAYOUTS`).
-        families: texture families to draw from (default: all registered).
+        families: texture families to draw from (default: all registered), uniformly; or a
+            mapping ``{family: relative weight}`` (a family it leaves out is never drawn), which
+            shifts the mix towards families an estimator finds hard without leaving any out.
         depth_margin: the depth range sampled is ``camera.depth_range_m`` widened by this
             fraction on both sides (``near / (1 + m)`` to ``far * (1 + m)``), uniformly in
             inverse depth.
@@ -124,7 +133,7 @@ class SynthConfig:
     """
 
     layouts: dict = field(default_factory=lambda: {"plane": 0.15, "slanted": 0.25, "layout": 0.4, "smooth": 0.2})
-    families: tuple | None = None
+    families: tuple | dict | None = None
     depth_margin: float = 0.1
     max_objects: int = 4
     slant_spread: float = 0.6
@@ -168,8 +177,13 @@ class SynthConfig:
         bad = sorted(set(self.layouts) - set(LAYOUTS))
         if bad or not self.layouts or any(v < 0 for v in self.layouts.values()) or sum(self.layouts.values()) <= 0:
             raise InputError(f"layouts must weight some of {LAYOUTS}, got {self.layouts}")
-        if self.families is not None:
+        if isinstance(self.families, dict):
+            self.families = {str(k): _family_weight(k, v) for k, v in self.families.items()}
+            if not any(v > 0 for v in self.families.values()):
+                raise InputError(f"family weights must give some family a weight > 0, got {self.families}")
+        elif self.families is not None:
             self.families = tuple(self.families)
+        if self.families is not None:
             unknown = sorted(set(self.families) - set(TEXTURE_FAMILIES))
             if unknown or not self.families:
                 raise InputError(f"unknown texture families {unknown}; known: {sorted(TEXTURE_FAMILIES)}")
@@ -200,6 +214,14 @@ class SynthConfig:
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise InputError(f"{name} must lie in [0, 1], got {v}")
+
+    def draw_family(self, g: torch.Generator) -> str | None:
+        """The texture family of one surface: ``None`` (uniform over ``families``, drawn by
+        :func:`tdfd.textures.random_texture` itself) unless ``families`` weights them."""
+        if not isinstance(self.families, dict):
+            return None
+        names = list(self.families)
+        return choice(g, names, [self.families[n] for n in names])
 
     def to_dict(self) -> dict:
         """Plain JSON-able dict (for manifests)."""

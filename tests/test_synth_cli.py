@@ -87,6 +87,14 @@ def test_cli_options_and_errors(tmp_path, capsys):
     assert main(["--out", str(tmp_path / "x"), "--count", "2", "--camera", "nonexistent", "-q"]) == 1
     assert "error" in capsys.readouterr().err
     assert main(["--out", str(tmp_path / "y"), "--count", "2", "--families", "photos", "-q"]) == 1
+    weighted = _run(tmp_path / "w", "--families", "stripes:3,dots:0", "--size", "48x64", "--contact-sheet", "0")
+    assert weighted["config"]["families"] == {"stripes": 3.0, "dots": 0.0}
+    drawn = {f for p in load_shard(tmp_path / "w" / weighted["shards"][0]["file"])["params"]
+             for f in p["texture_families"].split(",")}
+    assert "stripes" in drawn and drawn <= {"stripes", "flat"}  # "flat": an actively lit scene's texture-less target
+    for bad in ("stripes:3,dots", "stripes:x", "stripes:-1", "stripes:nan"):
+        with pytest.raises(SystemExit):
+            main(["--out", str(tmp_path / "z"), "--count", "2", "--families", bad, "-q"])
 
 
 def test_python_dash_m_entry_point(tmp_path):

@@ -165,3 +165,23 @@ def test_same_bytes_whatever_the_number_of_torch_threads():
         torch.set_num_threads(before)
     for x, y in zip(a, b):
         assert _same(x, y)
+
+
+def test_weighted_families_follow_their_weights_and_leave_the_uniform_mix_alone():
+    # a weight of 0 is never drawn; the others in proportion (3 : 1 here, 600 draws: a share of 0.75 +- 0.018)
+    cfg = SynthConfig(families={"stripes": 3.0, "checkers": 1.0, "dots": 0.0})
+    g = torch.Generator().manual_seed(5)
+    draws = [cfg.draw_family(g) for _ in range(600)]
+    assert "dots" not in draws and set(draws) == {"stripes", "checkers"}
+    assert abs(draws.count("stripes") / 600 - 0.75) < 0.06
+    # the scenes carry the drawn families, and the weights survive the config's round trip
+    ds = DefocusPairDataset(seed=3, families={"stripes": 1.0, "dots": 0.0}, layouts={"plane": 1.0},
+                            illumination_prob=0.0, **KW)
+    assert all(ds[i]["params"]["texture_families"] == "stripes" for i in range(3))
+    assert SynthConfig.from_dict(cfg.to_dict()) == cfg
+    # a list (or no families) keeps the uniform draw, so its scenes are unchanged
+    assert SynthConfig(families=["stripes"]).draw_family(g) is None and SynthConfig().draw_family(g) is None
+    for bad in ({"stripes": -1.0}, {"stripes": float("nan")}, {"stripes": True}, {"stripes": 0.0},
+                {"photos": 1.0}, {"stripes": "2"}):
+        with pytest.raises(InputError):
+            SynthConfig(families=bad)
