@@ -42,7 +42,7 @@ from tdfd.model import DFDModel
 from tdfd.model.scale_calibration import tile_border_distance
 from training.calibrate_scale import PLANE_SEED
 from training.calibrate_scale import STRUCTURE_SEED as CAL_STRUCTURE_SEED
-from training.config import DataConfig, EvalConfig, ModelConfig
+from training.config import TEXTURED_FAMILIES, DataConfig, EvalConfig, ModelConfig
 from training.data import STRUCTURE_LAYOUTS, fetch_batch, make_dataset
 
 __all__ = ["plane_tiles", "structure_tiles", "calibration", "main"]
@@ -55,12 +55,14 @@ def plane_tiles(model: DepthModel, samples: int, size: int, chunk: int = 16, see
                 ) -> dict[str, torch.Tensor]:
     """The refinement benchmark's first ``samples`` textured planes (seed :data:`BENCH_SEED`,
     full realism, as :func:`benchmarks.bench_refinement.bench_tiles`): per-tile ``true`` and
-    ``refined`` depth, ``confidence``, ``scene`` (the plane's index) and ``border`` (the tile's
-    distance in tiles to the grid's edge), flattened."""
+    ``refined`` depth, ``confidence``, ``scene`` (the plane's index), ``border`` (the tile's
+    distance in tiles to the grid's edge) and ``family`` (the plane's texture family, an index
+    into :data:`training.config.TEXTURED_FAMILIES`), flattened."""
     ev = EvalConfig(samples=samples, seed=seed, height=size, width=size)
     data = DataConfig(**{**DataConfig().__dict__, "options": dict(ev.options)})
     ds = make_dataset(data, ModelConfig(tile=model.tile, stride=model.stride), ev.seed, size, size)
-    out: dict[str, list[torch.Tensor]] = {"true": [], "refined": [], "confidence": [], "scene": [], "border": []}
+    out: dict[str, list[torch.Tensor]] = {"true": [], "refined": [], "confidence": [], "scene": [], "border": [],
+                                          "family": []}
     for start in tqdm(range(0, samples, chunk), desc="planes", mininterval=10.0):
         idx = list(range(start, min(samples, start + chunk)))
         batch = fetch_batch(ds, idx)
@@ -70,6 +72,8 @@ def plane_tiles(model: DepthModel, samples: int, size: int, chunk: int = 16, see
         out["confidence"].append(conf.flatten())
         out["scene"].append(torch.tensor(idx).view(-1, 1, 1, 1).expand(depth.shape).flatten())
         out["border"].append(tile_border_distance(depth).expand(depth.shape).flatten())
+        family = [TEXTURED_FAMILIES.index(str(p["texture_families"]).split(",")[0]) for p in batch["params"]]
+        out["family"].append(torch.tensor(family).view(-1, 1, 1, 1).expand(depth.shape).flatten())
     return {k: torch.cat(v) for k, v in out.items()}
 
 

@@ -33,6 +33,7 @@ from benchmarks.bench_uncertainty import plane_tiles
 from benchmarks.depth_models import OUTPUTS, DepthModel, load_depth_model
 from benchmarks.report import markdown_table
 from benchmarks.uncertainty import resample_scenes
+from training.config import TEXTURED_FAMILIES
 from training.data import STRUCTURE_LAYOUTS
 
 __all__ = ["paired_tile_median", "paired_group_median", "compare"]
@@ -122,8 +123,8 @@ def compare(model_a: DepthModel, model_b: DepthModel, planes: int = 1024, scenes
             seed: int = 0, jobs: int = 1, paths: tuple[str, str] | None = None,
             outputs: tuple[str, str] = ("map", "map")) -> list[tuple[str, dict[str, float]]]:
     """The paired comparisons: planes per tile (all tiles, then the tiles on the edge of the
-    grid and those inside it) and per plane, each structure layout and all layouts per tile
-    away from edges. Rows of ``(name, result)``.
+    grid and those inside it, then each texture family's planes) and per plane, each structure
+    layout and all layouts per tile away from edges. Rows of ``(name, result)``.
 
     With ``jobs > 1`` the structure scenes are spread over that many processes
     (:func:`benchmarks.bench_structure.collect_layouts`), which load the models from ``paths``
@@ -145,6 +146,12 @@ def compare(model_a: DepthModel, model_b: DepthModel, planes: int = 1024, scenes
                           (" inside the edge", keep & (ta["border"] > 0))):
             rows.append((f"textured planes ({planes}), per tile{name}",
                          paired_tile_median(ea[sel], eb[sel], ta["scene"][sel], reps, gen)))
+        for k, family in enumerate(TEXTURED_FAMILIES):  # where a change lands: a family's planes alone
+            sel = keep & (ta["family"] == k)
+            if bool(sel.any()):
+                count = int(ta["scene"][sel].unique().numel())
+                rows.append((f"textured planes ({planes}), per tile, {family} ({count} planes)",
+                             paired_tile_median(ea[sel], eb[sel], ta["scene"][sel], reps, gen)))
         plane_true = torch.zeros(planes).index_reduce_(0, ta["scene"], ta["true"], "amax", include_self=False)
         in_range = (plane_true >= near) & (plane_true <= far)
         sel = in_range[ta["scene"]]

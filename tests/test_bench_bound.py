@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from benchmarks.bench_bound import (PSF_NUISANCES, _coords, depth_variances, median_at_bound, otf, otf_jacobian,
-                                    plane_fisher, plane_information, psf_model, psf_prior_variance)
+                                    plane_fisher, plane_information, psf_model, psf_prior_variance, ring_band)
 from data_synth.params import SynthConfig
 from data_synth.psf import PSFModel
 from tdfd import Camera
+from tdfd.errors import InputError
 from tdfd.optics.thin_lens import camera_sigmas
 
 REF = Camera.preset("reference")
@@ -135,3 +136,24 @@ def test_median_at_the_bound_of_a_mixture_of_tiles():
     m = median_at_bound(torch.tensor([1e-9, 1.0, 1.0]))  # 1/3 + 2/3 P(|e|<=m) = 1/2 -> P = 1/4
     assert m == pytest.approx(0.31864, rel=1e-3)
     assert median_at_bound(torch.tensor([0.5, 1.0])) < 0.67449 * 1.0
+
+
+def test_information_within_a_band_is_additive_and_below_the_whole_spectrum():
+    # Fisher information is a sum over bins: a band and its complement add up to the whole spectrum,
+    # and a texture whose power lies above the band gives the band almost none of it
+    params = {**PARAMS, "psf_shape": "pillbox"}
+    band = ring_band(2, 13)
+    whole = plane_fisher(REF, _texture(0.1), 0.45, params)
+    inside = plane_fisher(REF, _texture(0.1), 0.45, params, band=band)
+    outside = plane_fisher(REF, _texture(0.1), 0.45, params, band=1.0 - band)
+    torch.testing.assert_close(inside + outside, whole)
+    assert bool((inside[..., 0, 0] < whole[..., 0, 0]).all()) and bool((inside[..., 0, 0] > 0).all())
+    y, x = torch.meshgrid(torch.arange(128.0), torch.arange(128.0), indexing="ij")
+    fine = 0.3 + 0.1 * torch.cos(2 * math.pi * 20 / 64 * x).double()  # bin 20 (0.31 cycles/px), above the band
+    j_fine_in = plane_fisher(REF, fine, 0.45, params, band=band, nuisances=False)[..., 0, 0]
+    j_fine = plane_fisher(REF, fine, 0.45, params, nuisances=False)[..., 0, 0]
+    assert bool((j_fine_in < 1e-3 * j_fine).all())
+    # ring 0 is the DC bin alone; ring 1 the four axis neighbours and the four diagonal ones (|k| = 1.41)
+    assert int(ring_band(0, 0).sum()) == 1 and int(ring_band(1, 1).sum()) == 8
+    with pytest.raises(InputError):
+        ring_band(5, 2)

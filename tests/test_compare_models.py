@@ -64,3 +64,25 @@ def test_structure_rows_are_the_same_from_worker_processes():
         assert r1 == r2 and r1["diff"] == 0.0
     with pytest.raises(ValueError, match="paths"):
         compare(model, model, planes=0, scenes=2, jobs=2)
+
+
+def test_plane_rows_split_by_texture_family_cover_every_plane_once():
+    """The per-family rows: each textured plane in range in exactly one family's row; the same
+    model against itself differs by nothing in each."""
+    from benchmarks.bench_uncertainty import plane_tiles
+    from benchmarks.compare_models import compare
+    from benchmarks.depth_models import load_depth_model
+    from benchmarks.report import ROOT
+    from training.config import TEXTURED_FAMILIES
+
+    model = load_depth_model(str(ROOT / "models" / "reference"), threads=1)
+    tiles = plane_tiles(model, 12, 256)
+    per_scene = tiles["family"].view(12, -1)
+    assert bool((per_scene == per_scene[:, :1]).all())  # one family per plane
+    assert set(per_scene[:, 0].tolist()) <= set(range(len(TEXTURED_FAMILIES))) and per_scene[:, 0].unique().numel() > 2
+    rows = dict(compare(model, model, planes=12, scenes=0, reps=5))
+    family_rows = {name: r for name, r in rows.items() if "per tile, " in name}
+    planes = sum(int(name.rsplit("(", 1)[1].split()[0]) for name in family_rows)
+    near, far = model.camera.depth_range_m
+    in_range = tiles["scene"][(tiles["true"] >= near) & (tiles["true"] <= far)].unique().numel()
+    assert planes == in_range > 6 and all(r["diff"] == 0.0 for r in family_rows.values())
