@@ -85,7 +85,7 @@ from tdfd.sensor import SensorModel
 from training.config import EvalConfig
 from training.losses import depth_relative_error
 
-__all__ = ["plane_information", "plane_fisher", "tile_fisher", "otf_jacobian", "psf_prior_variance", "depth_variances", "median_at_bound", "otf", "main"]
+__all__ = ["plane_information", "plane_fisher", "tile_fisher", "otf_jacobian", "psf_prior_variance", "depth_variances", "median_at_bound", "otf", "ring_band", "main"]
 
 TILE, STRIDE = 64, 32
 MEDIAN_ABS = 0.6745  # median |x| of a standard normal x
@@ -441,7 +441,7 @@ def main(argv: list[str] | None = None) -> int:
     rings = FourierRatioDFD(camera, tile=TILE, stride=STRIDE)  # the analytic estimator's default rings
     band = ring_band(rings.min_bin, rings.spectra.max_bin)
     t0 = time.perf_counter()
-    rows = []  # per plane: depth, per-tile relative std (three ways), plane relative std (two ways)
+    rows = []  # per plane: depth, per-tile relative std (four ways), plane relative std (two ways)
     for i in tqdm(range(args.samples), desc="bound", mininterval=5.0):
         s = ds[i]
         prm = s["params"]
@@ -449,7 +449,8 @@ def main(argv: list[str] | None = None) -> int:
             continue
         d = float(s["tile_depth"].median())
         var = depth_variances(plane_fisher(camera, s["sharp"][0], d, prm), prior_var)
-        var["tile_band"] = depth_variances(plane_fisher(camera, s["sharp"][0], d, prm, band=band), prior_var)["tile_shared"]
+        in_band = plane_fisher(camera, s["sharp"][0], d, prm, band=band)
+        var["tile_band"] = depth_variances(in_band, prior_var)["tile_shared"]
         rel = {k: (v.sqrt() * d).flatten() for k, v in var.items()}  # std of q / q = relative depth std
         family = json.loads(prm["details"])["textures"][0]["family"]
         rows.append({"depth": d, "index": i, "family": family, **rel})
