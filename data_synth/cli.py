@@ -65,11 +65,11 @@ def _families(text: str) -> list[str] | dict[str, float]:
     for t in items:
         name, sep, value = t.partition(":")
         try:
-            weights[name] = float(value) if sep else math.nan
+            weights[name] = float(value)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"family weight must be a number, got {t!r}") from None
+            weights[name] = math.nan
         if not sep or not math.isfinite(weights[name]) or weights[name] < 0:
-            raise argparse.ArgumentTypeError(f"with weights every family needs NAME:WEIGHT (>= 0), got {t!r}")
+            raise argparse.ArgumentTypeError(f"with weights every family needs NAME:WEIGHT (a number >= 0), got {t!r}")
     return weights
 
 

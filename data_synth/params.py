@@ -18,7 +18,7 @@ import torch
 
 from tdfd import Camera
 from tdfd.errors import InputError
-from tdfd.textures import TEXTURE_FAMILIES
+from tdfd.textures import TEXTURE_FAMILIES, family_weights
 
 from .psf import PSFModel, diffraction_sigma_px
 
@@ -74,13 +74,6 @@ def choice(g: torch.Generator, options: Sequence[Any], weights: Sequence[float] 
     w = np.asarray(weights, dtype=np.float64)
     u = uniform(g, 0.0, float(w.sum()))
     return options[int(min(np.searchsorted(np.cumsum(w), u, side="right"), len(options) - 1))]
-
-
-def _family_weight(name: Any, weight: Any) -> float:
-    """A texture family's relative weight: a finite number >= 0 (bool refused)."""
-    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not math.isfinite(weight) or weight < 0:
-        raise InputError(f"texture family {name!r} needs a finite weight >= 0, got {weight!r}")
-    return float(weight)
 
 
 @dataclass
@@ -178,9 +171,7 @@ class SynthConfig:
         if bad or not self.layouts or any(v < 0 for v in self.layouts.values()) or sum(self.layouts.values()) <= 0:
             raise InputError(f"layouts must weight some of {LAYOUTS}, got {self.layouts}")
         if isinstance(self.families, dict):
-            self.families = {str(k): _family_weight(k, v) for k, v in self.families.items()}
-            if not any(v > 0 for v in self.families.values()):
-                raise InputError(f"family weights must give some family a weight > 0, got {self.families}")
+            self.families = family_weights(self.families)
         elif self.families is not None:
             self.families = tuple(self.families)
         if self.families is not None:
@@ -214,14 +205,6 @@ class SynthConfig:
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise InputError(f"{name} must lie in [0, 1], got {v}")
-
-    def draw_family(self, g: torch.Generator) -> str | None:
-        """The texture family of one surface: ``None`` (uniform over ``families``, drawn by
-        :func:`tdfd.textures.random_texture` itself) unless ``families`` weights them."""
-        if not isinstance(self.families, dict):
-            return None
-        names = list(self.families)
-        return choice(g, names, [self.families[n] for n in names])
 
     def to_dict(self) -> dict:
         """Plain JSON-able dict (for manifests)."""

@@ -227,9 +227,6 @@ def _texture(g: torch.Generator, size: tuple[int, int], cfg: SynthConfig, textur
              ) -> tuple[torch.Tensor, dict]:
     if textureless:
         return random_texture(g, size, family="flat")
-    family = cfg.draw_family(g)
-    if family is not None:
-        return random_texture(g, size, family=family)
     return random_texture(g, size, families=cfg.families)
 
 

@@ -39,9 +39,10 @@ Example:
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import torch
 
@@ -52,6 +53,7 @@ __all__ = [
     "TEXTURE_FAMILIES",
     "register_texture",
     "random_texture",
+    "family_weights",
     "apply_albedo",
     "fractal",
     "bandlimited",
@@ -648,8 +650,38 @@ for _name, _fn, _sp in (
     register_texture(_name, _fn, _sp)
 
 
+def family_weights(weights: Mapping[str, Any]) -> dict[str, float]:
+    """Relative weights of texture families, checked: each a finite number >= 0 (a bool is no
+    number here), at least one > 0.
+
+    Raises:
+        InputError: naming the family whose weight is bad, or the all-zero mapping.
+
+    Example:
+        >>> family_weights({"stripes": 3, "dots": 0.0})
+        {'stripes': 3.0, 'dots': 0.0}
+    """
+    out = {}
+    for name, w in dict(weights).items():
+        if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w) or w < 0:
+            raise InputError(f"texture family {name!r} needs a finite weight >= 0, got {w!r}")
+        out[str(name)] = float(w)
+    if not any(w > 0 for w in out.values()):
+        raise InputError(f"family weights must give some family a weight > 0, got {out}")
+    return out
+
+
+def _weighted_choice(g: torch.Generator, weights: dict[str, float]) -> str:
+    """A family drawn with probability proportional to its weight (one uniform draw from ``g``)."""
+    u = _u(g, 0.0, sum(weights.values()))
+    names = list(weights)
+    below = sum(1 for c in itertools.accumulate(weights.values()) if c <= u)  # cumulative weights passed
+    return names[min(below, len(names) - 1)]
+
+
 def random_texture(generator: torch.Generator, size: int | Sequence[int], family: str | None = None,
-                   families: Sequence[str] | None = None, albedo: tuple[float, float] = (0.05, 0.95),
+                   families: Sequence[str] | Mapping[str, float] | None = None,
+                   albedo: tuple[float, float] = (0.05, 0.95),
                    contrast: tuple[float, float] = (0.03, 1.0)) -> tuple[torch.Tensor, dict]:
     """A random texture of a random (or given) family with random albedo and contrast.
 
@@ -657,7 +689,8 @@ def random_texture(generator: torch.Generator, size: int | Sequence[int], family
         generator: random source (the only one used).
         size: ``(H, W)`` or a side length in px.
         family: force this family; otherwise one of ``families`` (default: all registered)
-            is drawn uniformly.
+            is drawn, uniformly from a sequence or by relative weight from a mapping
+            ``{family: weight}`` (:func:`family_weights`; a family it leaves out is never drawn).
         families: the families to draw from.
         albedo: range of the brightest reflectance (uniform).
         contrast: range of the modulation depth (log-uniform); the ``flat`` family keeps
@@ -668,6 +701,8 @@ def random_texture(generator: torch.Generator, size: int | Sequence[int], family
         ``albedo``, ``contrast`` and the family's parameters (plain Python values).
     """
     hw = _hw(size)
+    if family is None and isinstance(families, Mapping):
+        family = _weighted_choice(generator, family_weights(families))
     names = list(TEXTURE_FAMILIES) if families is None else list(families)
     if family is None:
         if not names:

@@ -10,6 +10,7 @@ from tdfd import Camera
 from tdfd.errors import InputError
 from tdfd.grid import grid_shape, tile_true_depth
 from tdfd.optics import camera_sigmas
+from tdfd.textures import random_texture
 
 SIZE = 64
 KW = dict(size=SIZE, tile=32, stride=16)
@@ -171,7 +172,7 @@ def test_weighted_families_follow_their_weights_and_leave_the_uniform_mix_alone(
     # a weight of 0 is never drawn; the others in proportion (3 : 1 here, 600 draws: a share of 0.75 +- 0.018)
     cfg = SynthConfig(families={"stripes": 3.0, "checkers": 1.0, "dots": 0.0})
     g = torch.Generator().manual_seed(5)
-    draws = [cfg.draw_family(g) for _ in range(600)]
+    draws = [random_texture(g, 8, families=cfg.families)[1]["family"] for _ in range(600)]
     assert "dots" not in draws and set(draws) == {"stripes", "checkers"}
     assert abs(draws.count("stripes") / 600 - 0.75) < 0.06
     # the scenes carry the drawn families, and the weights survive the config's round trip
@@ -179,9 +180,13 @@ def test_weighted_families_follow_their_weights_and_leave_the_uniform_mix_alone(
                             illumination_prob=0.0, **KW)
     assert all(ds[i]["params"]["texture_families"] == "stripes" for i in range(3))
     assert SynthConfig.from_dict(cfg.to_dict()) == cfg
-    # a list (or no families) keeps the uniform draw, so its scenes are unchanged
-    assert SynthConfig(families=["stripes"]).draw_family(g) is None and SynthConfig().draw_family(g) is None
+    # a list keeps the uniform draw (600 draws of two: a share of 0.5 +- 0.02), so its scenes are unchanged
+    assert SynthConfig(families=["stripes", "checkers"]).families == ("stripes", "checkers")
+    uniform = [random_texture(g, 8, families=("stripes", "checkers"))[1]["family"] for _ in range(600)]
+    assert abs(uniform.count("stripes") / 600 - 0.5) < 0.06
     for bad in ({"stripes": -1.0}, {"stripes": float("nan")}, {"stripes": True}, {"stripes": 0.0},
                 {"photos": 1.0}, {"stripes": "2"}):
         with pytest.raises(InputError):
             SynthConfig(families=bad)
+        with pytest.raises(InputError):  # the texture library refuses the same mappings itself
+            random_texture(g, 8, families=bad)
