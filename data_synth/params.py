@@ -91,6 +91,11 @@ class SynthConfig:
         max_objects: most foreground objects of a ``layout`` scene.
         slant_spread: largest inverse-depth spread of a slanted plane, as a fraction of the
             sampled inverse-depth range.
+        spectral_tilt: largest tilt of a texture's amplitude spectrum
+            (:func:`tdfd.textures.spectral_tilt`): every textured surface's spectrum is tilted
+            by ``(f / 0.1 cycles/px)^a``, ``a`` uniform in ``[-spectral_tilt, spectral_tilt]``,
+            so that a frame's spectral shape stops telling its blur (0: off, the default; no
+            draw is made, the same scenes as before).
     Illumination:
         illumination_prob: probability of an active source (else ambient light only).
         coherent_fraction: fraction of active sources that are the coherent module (the
@@ -130,6 +135,7 @@ class SynthConfig:
     depth_margin: float = 0.1
     max_objects: int = 4
     slant_spread: float = 0.6
+    spectral_tilt: float = 0.0
     illumination_prob: float = 0.3
     coherent_fraction: float = 0.6
     speckle_prob: float = 0.5
@@ -196,6 +202,10 @@ class SynthConfig:
         self.mask_feature_px = tuple(float(v) for v in self.mask_feature_px)
         if len(self.mask_feature_px) != 2 or not 1.0 <= self.mask_feature_px[0] <= self.mask_feature_px[1]:
             raise InputError(f"mask_feature_px must be (low, high) px with 1 <= low <= high, got {self.mask_feature_px}")
+        if isinstance(self.spectral_tilt, bool) or not isinstance(self.spectral_tilt, (int, float)) \
+                or not 0.0 <= self.spectral_tilt <= 2.0:
+            raise InputError(f"spectral_tilt must be a number in [0, 2], got {self.spectral_tilt!r}")
+        self.spectral_tilt = float(self.spectral_tilt)
         if not 0 <= self.breathing_max <= 0.05 or self.shift_max_px < 0 or self.layer_spacing <= 0:
             raise InputError("need 0 <= breathing_max <= 0.05, shift_max_px >= 0 and layer_spacing > 0")
         if self.depth_margin < 0 or self.max_objects < 1:

@@ -227,7 +227,7 @@ def _texture(g: torch.Generator, size: tuple[int, int], cfg: SynthConfig, textur
              ) -> tuple[torch.Tensor, dict]:
     if textureless:
         return random_texture(g, size, family="flat")
-    return random_texture(g, size, families=cfg.families)
+    return random_texture(g, size, families=cfg.families, spectral_tilt_max=cfg.spectral_tilt)
 
 
 def make_scene(g: torch.Generator, cfg: SynthConfig, camera: Camera, size: tuple[int, int]) -> Scene:

@@ -55,6 +55,7 @@ __all__ = [
     "random_texture",
     "family_weights",
     "apply_albedo",
+    "spectral_tilt",
     "fractal",
     "bandlimited",
     "voronoi",
@@ -549,6 +550,57 @@ def apply_albedo(texture: torch.Tensor, albedo: float | torch.Tensor, contrast: 
     return a * (1.0 - c + c * texture)
 
 
+def spectral_tilt(texture: torch.Tensor, exponent: float, reference_frequency: float = 0.1) -> torch.Tensor:
+    """Tilt a texture's spectrum: its Fourier amplitude times ``(f / f_ref)^exponent``, then
+    rescaled to [0, 1].
+
+    A frame's own spectral shape is a depth cue only through the scenes' typical spectra: a
+    blur steepens a 1/f spectrum just as a texture with a steeper spectrum would. Training
+    textures with randomly tilted spectra (``data_synth``'s ``SynthConfig.spectral_tilt``)
+    take that cue away, so the depth must come from the ratio of the two frames (paper,
+    eq. 10), which no texture spectrum changes.
+
+    Args:
+        texture: ``(B, 1, H, W)`` in [0, 1].
+        exponent: the tilt ``a`` of the amplitude spectrum (the power spectrum's log-log slope
+            changes by ``2 a``); 0 leaves the texture unchanged up to the rescaling.
+        reference_frequency: ``f_ref`` in cycles/px, where the amplitude is kept; frequencies
+            below one cycle per image side are treated as that lowest one (the mean is kept
+            before the rescaling).
+
+    Returns:
+        ``(B, 1, H, W)`` in [0, 1], each image's minimum at 0 and maximum at 1 (a constant
+        image stays constant).
+
+    Raises:
+        InputError: a non-finite exponent or a reference frequency outside (0, 0.5].
+
+    Example:
+        >>> import torch
+        >>> x = torch.rand(1, 1, 32, 32, generator=torch.Generator().manual_seed(0))
+        >>> y = spectral_tilt(x, 0.5)
+        >>> y.shape, float(y.min()), float(y.max())
+        (torch.Size([1, 1, 32, 32]), 0.0, 1.0)
+    """
+    if isinstance(exponent, bool) or not isinstance(exponent, (int, float)) or not math.isfinite(exponent):
+        raise InputError(f"spectral tilt exponent must be a finite number, got {exponent!r}")
+    if not 0.0 < reference_frequency <= 0.5:
+        raise InputError(f"reference_frequency must lie in (0, 0.5] cycles/px, got {reference_frequency!r}")
+    if texture.dim() != 4 or texture.shape[1] != 1:
+        raise InputError(f"expected a (B, 1, H, W) texture, got {tuple(texture.shape)}")
+    h, w = texture.shape[-2:]
+    x = texture.double()
+    fy = torch.fft.fftfreq(h, dtype=torch.float64)[:, None]
+    fx = torch.fft.rfftfreq(w, dtype=torch.float64)[None, :]
+    f = torch.sqrt(fy**2 + fx**2).clamp_min(1.0 / max(h, w))
+    mean = x.mean((-2, -1), keepdim=True)
+    y = torch.fft.irfft2(torch.fft.rfft2(x - mean) * (f / reference_frequency) ** float(exponent), s=(h, w)) + mean
+    lo = y.amin((-2, -1), keepdim=True)
+    span = y.amax((-2, -1), keepdim=True) - lo
+    y = torch.where(span > 1e-12, (y - lo) / span.clamp_min(1e-12), torch.full_like(y, 0.5))
+    return y.clamp(0.0, 1.0).to(texture.dtype)
+
+
 # ----------------------------------------------------------------------------- registry
 @dataclass(frozen=True)
 class TextureFamily:
@@ -682,7 +734,8 @@ def _weighted_choice(g: torch.Generator, weights: dict[str, float]) -> str:
 def random_texture(generator: torch.Generator, size: int | Sequence[int], family: str | None = None,
                    families: Sequence[str] | Mapping[str, float] | None = None,
                    albedo: tuple[float, float] = (0.05, 0.95),
-                   contrast: tuple[float, float] = (0.03, 1.0)) -> tuple[torch.Tensor, dict]:
+                   contrast: tuple[float, float] = (0.03, 1.0), spectral_tilt_max: float = 0.0
+                   ) -> tuple[torch.Tensor, dict]:
     """A random texture of a random (or given) family with random albedo and contrast.
 
     Args:
@@ -695,6 +748,10 @@ def random_texture(generator: torch.Generator, size: int | Sequence[int], family
         albedo: range of the brightest reflectance (uniform).
         contrast: range of the modulation depth (log-uniform); the ``flat`` family keeps
             its own faint variation at full contrast.
+        spectral_tilt_max: > 0: the texture's spectrum is tilted (:func:`spectral_tilt`) by an
+            exponent drawn uniformly from ``[-spectral_tilt_max, spectral_tilt_max]`` (recorded
+            as ``params["spectral_tilt"]``), before the albedo and contrast; 0 (default): no
+            tilt and no draw.
 
     Returns:
         ``(texture (1, 1, H, W) in [0, 1], params)`` where ``params`` holds ``family``,
@@ -714,7 +771,14 @@ def random_texture(generator: torch.Generator, size: int | Sequence[int], family
     params = fam.sample_params(generator, hw)
     a = _u(generator, *albedo)
     c = 1.0 if family == "flat" else _logu(generator, *contrast)
-    tex = apply_albedo(fam.fn(hw, generator, 1, **params), a, c)
+    if isinstance(spectral_tilt_max, bool) or not isinstance(spectral_tilt_max, (int, float)) \
+            or not spectral_tilt_max >= 0 or not math.isfinite(spectral_tilt_max):
+        raise InputError(f"spectral_tilt_max must be a finite number >= 0, got {spectral_tilt_max!r}")
+    raw = fam.fn(hw, generator, 1, **params)
     out = {"family": family, "albedo": a, "contrast": c}
+    if spectral_tilt_max > 0 and family != "flat":
+        out["spectral_tilt"] = _u(generator, -spectral_tilt_max, spectral_tilt_max)
+        raw = spectral_tilt(raw, out["spectral_tilt"])
+    tex = apply_albedo(raw, a, c)
     out.update({k: (list(v) if isinstance(v, tuple) else v) for k, v in params.items()})
     return tex, out

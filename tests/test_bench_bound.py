@@ -153,6 +153,13 @@ def test_information_within_a_band_is_additive_and_below_the_whole_spectrum():
     j_fine_in = plane_fisher(REF, fine, 0.45, params, band=band, nuisances=False)[..., 0, 0]
     j_fine = plane_fisher(REF, fine, 0.45, params, nuisances=False)[..., 0, 0]
     assert bool((j_fine_in < 1e-3 * j_fine).all())
+    # a stack of bands gives each band's information at once
+    both = plane_fisher(REF, _texture(0.1), 0.45, params, band=torch.stack([band, 1.0 - band]))
+    torch.testing.assert_close(both[0], inside)
+    torch.testing.assert_close(both[1], outside)
+    for bad in (band[:5], band[None, None]):
+        with pytest.raises(InputError):
+            plane_fisher(REF, _texture(0.1), 0.45, params, band=bad)
     # ring 0 is the DC bin alone; ring 1 the four axis neighbours and the four diagonal ones (|k| = 1.41)
     assert int(ring_band(0, 0).sum()) == 1 and int(ring_band(1, 1).sum()) == 8
     with pytest.raises(InputError):

@@ -1,5 +1,7 @@
 """The on-the-fly dataset: determinism per (seed, index), workers, batches, contents."""
 
+import json
+
 import pytest
 import torch
 from torch.utils.data import DataLoader, default_collate
@@ -190,3 +192,18 @@ def test_weighted_families_follow_their_weights_and_leave_the_uniform_mix_alone(
             SynthConfig(families=bad)
         with pytest.raises(InputError):  # the texture library refuses the same mappings itself
             random_texture(g, 8, families=bad)
+
+
+def test_spectral_tilt_option_tilts_every_textured_surface_and_defaults_off():
+    # every surface but a flat one (its faint variation is no texture to tilt)
+    assert SynthConfig().spectral_tilt == 0.0
+    ds = DefocusPairDataset(seed=6, spectral_tilt=0.5, layouts={"layout": 1.0}, illumination_prob=0.0, **KW)
+    plain = DefocusPairDataset(seed=6, layouts={"layout": 1.0}, illumination_prob=0.0, **KW)
+    for i in range(3):
+        tex = json.loads(ds[i]["params"]["details"])["textures"]
+        assert tex and all(abs(t["spectral_tilt"]) <= 0.5 for t in tex if t["family"] != "flat")
+        assert all("spectral_tilt" not in t for t in json.loads(plain[i]["params"]["details"])["textures"])
+    assert SynthConfig.from_dict(SynthConfig(spectral_tilt=0.25).to_dict()).spectral_tilt == 0.25
+    for bad in (-0.1, 2.5, float("nan"), True, "0.5"):
+        with pytest.raises(InputError):
+            SynthConfig(spectral_tilt=bad)

@@ -7,7 +7,7 @@ import torch
 
 from tdfd.errors import InputError
 from tdfd.textures import (TEXTURE_FAMILIES, apply_albedo, checkers, dead_leaves, dots, flat, fractal, random_texture,
-                           register_texture, stripes, voronoi)
+                           register_texture, spectral_tilt, stripes, voronoi)
 
 SIZE = (48, 64)
 
@@ -85,6 +85,60 @@ def test_fractal_spectral_slope():
     hi = spec[(f > 0.16) & (f < 0.32)].mean()
     slope = math.log(float(lo / hi)) / math.log(8.0)  # power ratio over 3 octaves
     assert slope == pytest.approx(2.0, abs=0.4)
+
+
+def _power_slope(x):
+    """Log-log slope of the radially averaged power spectrum over 0.02-0.3 cycles/px (least squares over bins)."""
+    h, w = x.shape[-2:]
+    spec = torch.fft.rfft2((x - x.mean((-1, -2), keepdim=True)).double()).abs().pow(2).mean((0, 1))
+    f = torch.sqrt(torch.fft.fftfreq(h, dtype=torch.float64)[:, None] ** 2
+                   + torch.fft.rfftfreq(w, dtype=torch.float64)[None, :] ** 2)
+    m = (f > 0.02) & (f < 0.3)
+    a = torch.stack([torch.ones(int(m.sum()), dtype=torch.float64), f[m].log()], 1)
+    return float(torch.linalg.lstsq(a, spec[m].log()[:, None]).solution[1, 0])
+
+
+def test_spectral_tilt_changes_the_power_slope_by_twice_its_exponent():
+    x = fractal(128, _g(1), batch=2, beta=2.5)
+    base = _power_slope(x)
+    for a in (-0.5, 0.3, 0.8):
+        y = spectral_tilt(x, a)
+        assert y.shape == x.shape and float(y.min()) == 0.0 and float(y.max()) == 1.0
+        assert _power_slope(y) - base == pytest.approx(2 * a, abs=0.02)
+    # exponent 0 keeps a texture that already spans [0, 1] (only the min-max rescaling acts)
+    z = stripes(SIZE, _g(2), period=7.0, angle=0.3)
+    z = (z - z.amin((-1, -2), keepdim=True)) / (z.amax((-1, -2), keepdim=True) - z.amin((-1, -2), keepdim=True))
+    assert torch.allclose(spectral_tilt(z, 0.0), z, atol=1e-6)
+    # a constant image stays constant (no division by its zero span)
+    assert torch.equal(spectral_tilt(torch.full((1, 1, 8, 8), 0.3), 0.5), torch.full((1, 1, 8, 8), 0.5))
+    for bad in (float("nan"), float("inf"), True, "0.5"):
+        with pytest.raises(InputError):
+            spectral_tilt(x, bad)
+    for f_ref in (0.0, -0.1, 0.6):
+        with pytest.raises(InputError):
+            spectral_tilt(x, 0.5, reference_frequency=f_ref)
+    with pytest.raises(InputError):
+        spectral_tilt(x[0], 0.5)
+
+
+def test_random_texture_tilt_is_drawn_recorded_and_off_by_default():
+    plain, info = random_texture(_g(3), SIZE, family="dead_leaves")
+    assert "spectral_tilt" not in info
+    # off: the same draws as before the option existed (nothing more is drawn from the generator)
+    g1, g2 = _g(4), _g(4)
+    random_texture(g1, SIZE, family="voronoi")
+    random_texture(g2, SIZE, family="voronoi", spectral_tilt_max=0.0)
+    assert torch.equal(torch.rand(3, generator=g1), torch.rand(3, generator=g2))
+    tilted, tinfo = random_texture(_g(3), SIZE, family="dead_leaves", spectral_tilt_max=0.7)
+    assert -0.7 <= tinfo["spectral_tilt"] <= 0.7
+    assert {k: v for k, v in tinfo.items() if k != "spectral_tilt"} == info  # the same family draw
+    lo, hi = info["albedo"] * (1 - info["contrast"]), info["albedo"]
+    assert float(tilted.min()) >= lo - 1e-6 and float(tilted.max()) <= hi + 1e-6
+    assert not torch.allclose(tilted, plain)
+    assert "spectral_tilt" not in random_texture(_g(3), SIZE, family="flat", spectral_tilt_max=0.7)[1]
+    for bad in (-0.1, float("nan"), True):
+        with pytest.raises(InputError):
+            random_texture(_g(3), SIZE, spectral_tilt_max=bad)
 
 
 def test_register_and_errors():
