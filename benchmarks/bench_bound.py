@@ -446,6 +446,7 @@ def main(argv: list[str] | None = None) -> int:
     prior_var = psf_prior_variance(SynthConfig(), camera)
     rings = FourierRatioDFD(camera, tile=TILE, stride=STRIDE)  # the analytic estimator's default rings
     band = ring_band(rings.min_bin, rings.spectra.max_bin)
+    every_and_band = torch.stack([torch.ones_like(band), band])  # both from one evaluation of the OTFs' derivatives
     t0 = time.perf_counter()
     rows = []  # per plane: depth, per-tile relative std (four ways), plane relative std (two ways)
     for i in tqdm(range(args.samples), desc="bound", mininterval=5.0):
@@ -454,8 +455,7 @@ def main(argv: list[str] | None = None) -> int:
         if prm["layout"] != "plane":
             continue
         d = float(s["tile_depth"].median())
-        # every bin and the estimator's band, from one evaluation of the OTFs' derivatives
-        every, in_band = plane_fisher(camera, s["sharp"][0], d, prm, band=torch.stack([torch.ones_like(band), band]))
+        every, in_band = plane_fisher(camera, s["sharp"][0], d, prm, band=every_and_band)
         var = depth_variances(every, prior_var)
         var["tile_band"] = depth_variances(in_band, prior_var)["tile_shared"]
         rel = {k: (v.sqrt() * d).flatten() for k, v in var.items()}  # std of q / q = relative depth std
@@ -478,6 +478,11 @@ def main(argv: list[str] | None = None) -> int:
         tr = measured["true"].reshape(args.samples, -1)
         signed = (measured["refined"].reshape(args.samples, -1) - tr) / tr
         signed_analytic = (measured["analytic"].reshape(args.samples, -1) - tr) / tr
+
+    def shared(errors: torch.Tensor, sel: list[dict]) -> torch.Tensor:
+        """Per plane of ``sel``, the error every tile shares: |median signed tile error|."""
+        return errors[torch.tensor([r["index"] for r in sel])].median(1).values.abs()
+
     table = []
     for lo, hi in BINS:
         sel = [r for r in keep if lo <= r["depth"] < hi or (hi == 1.0 and r["depth"] == 1.0)]
@@ -488,22 +493,20 @@ def main(argv: list[str] | None = None) -> int:
             t = measured["true"]
             m = (t >= lo) & ((t < hi) if hi < 1.0 else (t <= hi))
             row += [pct(float(depth_relative_error(measured[k], t)[m].median())) for k in ("refined", "analytic")]
-            # the part of the refined error that every tile of a plane shares (the bin's planes)
-            row.append(pct(float(signed[torch.tensor([r["index"] for r in sel])].median(1).values.abs().median())))
+            row.append(pct(float(shared(signed, sel).median())))
         table.append(row)
     families = []  # per texture family: where the refinement falls short of the bound
     if measured is not None:
         for name in sorted({r["family"] for r in keep}):
             sel = [r for r in keep if r["family"] == name]
             idx = torch.tensor([r["index"] for r in sel])
-            # the error every tile of the plane shares
-            shared, shared_analytic = (e[idx].median(1).values.abs() for e in (signed, signed_analytic))
+            refined, analytic = shared(signed, sel), shared(signed_analytic, sel)
             families.append([name, len(sel), pct(MEDIAN_ABS * float(gather(sel, "tile_shared").median())),
                              pct(MEDIAN_ABS * float(gather(sel, "tile_band").median())),
                              pct(float(signed[idx].abs().median())),
                              pct(MEDIAN_ABS * float(gather(sel, "plane_unknown").median())),
-                             pct(float(shared.median())), pct(float(shared_analytic.median())),
-                             f"{int((shared > shared_analytic + 0.05).sum())}"])
+                             pct(float(refined.median())), pct(float(analytic.median())),
+                             f"{int((refined > analytic + 0.05).sum())}"])
     summary: dict = {"planes": len(keep), "tiles": int(gather(keep, "tile_known").numel()), "wall_s": round(wall, 1)}
     for k in VARIANTS:
         std = gather(keep, k)

@@ -89,6 +89,16 @@ def _check_batch(batch: int) -> int:
     return int(batch)
 
 
+def _finite_number(value: Any, what: str, minimum: float | None = None) -> float:
+    """``value`` as a float if it is a finite number (a bool is no number here) and at least
+    ``minimum``; else :class:`InputError` naming ``what``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+            or (minimum is not None and value < minimum):
+        bound = "" if minimum is None else f" >= {minimum:g}"
+        raise InputError(f"{what} needs a finite number{bound}, got {value!r}")
+    return float(value)
+
+
 def _u(g: torch.Generator, lo: float, hi: float) -> float:
     """A uniform float in [lo, hi) from ``g``."""
     return lo + (hi - lo) * float(torch.rand((), generator=g, dtype=torch.float64))
@@ -582,8 +592,7 @@ def spectral_tilt(texture: torch.Tensor, exponent: float, reference_frequency: f
         >>> y.shape, float(y.min()), float(y.max())
         (torch.Size([1, 1, 32, 32]), 0.0, 1.0)
     """
-    if isinstance(exponent, bool) or not isinstance(exponent, (int, float)) or not math.isfinite(exponent):
-        raise InputError(f"spectral tilt exponent must be a finite number, got {exponent!r}")
+    exponent = _finite_number(exponent, "the spectral tilt exponent")
     if not 0.0 < reference_frequency <= 0.5:
         raise InputError(f"reference_frequency must lie in (0, 0.5] cycles/px, got {reference_frequency!r}")
     if texture.dim() != 4 or texture.shape[1] != 1:
@@ -594,7 +603,7 @@ def spectral_tilt(texture: torch.Tensor, exponent: float, reference_frequency: f
     fx = torch.fft.rfftfreq(w, dtype=torch.float64)[None, :]
     f = torch.sqrt(fy**2 + fx**2).clamp_min(1.0 / max(h, w))
     mean = x.mean((-2, -1), keepdim=True)
-    y = torch.fft.irfft2(torch.fft.rfft2(x - mean) * (f / reference_frequency) ** float(exponent), s=(h, w)) + mean
+    y = torch.fft.irfft2(torch.fft.rfft2(x - mean) * (f / reference_frequency) ** exponent, s=(h, w)) + mean
     lo = y.amin((-2, -1), keepdim=True)
     span = y.amax((-2, -1), keepdim=True) - lo
     y = torch.where(span > 1e-12, (y - lo) / span.clamp_min(1e-12), torch.full_like(y, 0.5))
@@ -715,9 +724,7 @@ def family_weights(weights: Mapping[str, Any]) -> dict[str, float]:
     """
     out = {}
     for name, w in dict(weights).items():
-        if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w) or w < 0:
-            raise InputError(f"texture family {name!r} needs a finite weight >= 0, got {w!r}")
-        out[str(name)] = float(w)
+        out[str(name)] = _finite_number(w, f"the weight of texture family {name!r}", minimum=0.0)
     if not any(w > 0 for w in out.values()):
         raise InputError(f"family weights must give some family a weight > 0, got {out}")
     return out
@@ -758,6 +765,7 @@ def random_texture(generator: torch.Generator, size: int | Sequence[int], family
         ``albedo``, ``contrast`` and the family's parameters (plain Python values).
     """
     hw = _hw(size)
+    spectral_tilt_max = _finite_number(spectral_tilt_max, "spectral_tilt_max", minimum=0.0)
     if family is None and isinstance(families, Mapping):
         family = _weighted_choice(generator, family_weights(families))
     names = list(TEXTURE_FAMILIES) if families is None else list(families)
@@ -771,9 +779,6 @@ def random_texture(generator: torch.Generator, size: int | Sequence[int], family
     params = fam.sample_params(generator, hw)
     a = _u(generator, *albedo)
     c = 1.0 if family == "flat" else _logu(generator, *contrast)
-    if isinstance(spectral_tilt_max, bool) or not isinstance(spectral_tilt_max, (int, float)) \
-            or not spectral_tilt_max >= 0 or not math.isfinite(spectral_tilt_max):
-        raise InputError(f"spectral_tilt_max must be a finite number >= 0, got {spectral_tilt_max!r}")
     raw = fam.fn(hw, generator, 1, **params)
     out = {"family": family, "albedo": a, "contrast": c}
     if spectral_tilt_max > 0 and family != "flat":
