@@ -85,7 +85,7 @@ from tdfd.sensor import SensorModel
 from training.config import EvalConfig
 from training.losses import depth_relative_error
 
-__all__ = ["plane_information", "plane_fisher", "tile_fisher", "otf_jacobian", "psf_prior_variance", "depth_variances", "median_at_bound", "otf", "ring_band", "main"]
+__all__ = ["plane_information", "plane_fisher", "tile_fisher", "otf_jacobian", "psf_prior_variance", "depth_variances", "median_at_bound", "otf", "ring_band", "sample_sensor", "main"]
 
 TILE, STRIDE = 64, 32
 MEDIAN_ABS = 0.6745  # median |x| of a standard normal x
@@ -253,14 +253,19 @@ def plane_fisher(camera: Camera, sharp: torch.Tensor, depth_m: float, params: di
     return _fisher_at(camera, psf_model(params), 1.0 / depth_m, weight, nuisances, dq)
 
 
+def sample_sensor(params: dict) -> tuple[SensorModel, float]:
+    """The noise model of a ``data_synth`` sample's sensor (vignetting aside) and its output
+    units per unit radiance (the slope of its mean response, far from clipping)."""
+    sensor = SensorModel(full_well_e=params["full_well_e"], read_noise_e=params["read_noise_e"], bits=params["bits"],
+                         black_level_dn=params["black_level_dn"], gain=params["gain"], exposure=params["exposure"])
+    lo, hi = sensor.expected_mean(torch.tensor([0.0, 1e-3], dtype=torch.float64))
+    return sensor, float(hi - lo) / 1e-3
+
+
 def _tile_weights(sharp: torch.Tensor, params: dict) -> torch.Tensor:
     """Per tile and bin, ``2 |S(u)|^2 / nu``: ``(h, w, T, T)``, the texture's power over the
     tile's noise power (the part of :func:`plane_fisher` that does not depend on ``q``)."""
-    sensor = SensorModel(full_well_e=params["full_well_e"], read_noise_e=params["read_noise_e"], bits=params["bits"],
-                         black_level_dn=params["black_level_dn"], gain=params["gain"], exposure=params["exposure"])
-    # output units per unit radiance (slope of the sensor's mean response, far from clipping)
-    lo, hi = sensor.expected_mean(torch.tensor([0.0, 1e-3], dtype=torch.float64))
-    scale = float(hi - lo) / 1e-3
+    sensor, scale = sample_sensor(params)
     x = sharp.double() * scale
     tiles = x.unfold(0, TILE, STRIDE).unfold(1, TILE, STRIDE)  # (h, w, T, T)
     mean = tiles.mean((-1, -2))

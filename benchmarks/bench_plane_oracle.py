@@ -62,8 +62,9 @@ from typing import Sequence
 import torch
 from tqdm import tqdm
 
-from benchmarks.bench_bound import MEDIAN_ABS, depth_variances, plane_fisher, psf_model, psf_prior_variance
-from benchmarks.bench_refinement import BENCH_SEED
+from benchmarks.bench_bound import (MEDIAN_ABS, depth_variances, plane_fisher, psf_model, psf_prior_variance,
+                                    sample_sensor)
+from benchmarks.bench_refinement import BENCH_SEED, bench_tiles
 from benchmarks.report import ROOT, machine, markdown_table, update_section
 from data_synth import DefocusPairDataset
 from data_synth.params import SynthConfig
@@ -72,10 +73,7 @@ from tdfd import Camera
 from tdfd.errors import InputError, ShapeError
 from tdfd.model import DFDModel
 from tdfd.optics.thin_lens import camera_sigmas
-from tdfd.sensor import SensorModel
-from training.config import DataConfig, EvalConfig, ModelConfig
-from training.data import make_dataset
-from training.evaluate import collect
+from training.config import EvalConfig
 
 __all__ = ["CLEAN_WORLD", "tukey_window", "cross_residual_nll", "fit_plane", "plane_frames", "main"]
 
@@ -214,12 +212,8 @@ def plane_frames(sample: dict) -> tuple[torch.Tensor, torch.Tensor, float, float
     """A ``data_synth`` sample's frames with the black level removed, and each frame's noise
     variance at its mean level (:meth:`tdfd.sensor.SensorModel.expected_variance`)."""
     p = sample["params"]
-    white = 2.0 ** p["bits"] - 1.0
-    black = p["black_level_dn"] / white
-    sensor = SensorModel(full_well_e=p["full_well_e"], read_noise_e=p["read_noise_e"], bits=p["bits"],
-                         black_level_dn=p["black_level_dn"], gain=p["gain"], exposure=p["exposure"])
-    probe = 1e-3
-    slope = (float(sensor.expected_mean(torch.tensor([probe], dtype=torch.float64))) - black) / probe
+    black = p["black_level_dn"] / (2.0 ** p["bits"] - 1.0)
+    sensor, slope = sample_sensor(p)
     frames = [sample[k][0].to(torch.float64) - black for k in ("image_f1", "image_f2")]
     nus = [float(sensor.expected_variance(torch.tensor([float(y.mean()) / slope], dtype=torch.float64)))
            for y in frames]
@@ -269,11 +263,7 @@ def main(argv: list[str] | None = None) -> int:
     if not rows:
         raise SystemExit("no plane in 0.3-1.0 m among the samples")
     if args.model:
-        model = DFDModel.load(args.model)
-        data = DataConfig(**{**DataConfig().__dict__, "options": options})
-        with torch.no_grad():
-            tiles = collect(model, make_dataset(data, ModelConfig(tile=model.tile, stride=model.stride), ev.seed,
-                                                args.size, args.size), args.samples)
+        tiles = bench_tiles(DFDModel.load(args.model), args.samples, args.size, CLEAN_WORLD)
         true = tiles["true"].reshape(args.samples, -1)
         for key in ("refined", "analytic"):
             plane = tiles[key].reshape(args.samples, -1).median(1).values

@@ -54,11 +54,12 @@ def ablation(model: DFDModel, samples: int, size: int) -> list[list[str]]:
     return rows
 
 
-def bench_tiles(model: DFDModel, samples: int, size: int) -> dict[str, torch.Tensor]:
+def bench_tiles(model: DFDModel, samples: int, size: int, overrides: dict | None = None) -> dict[str, torch.Tensor]:
     """The model's per-tile results (:func:`training.evaluate.collect`) on the benchmark's
-    first ``samples`` textured planes (seed :data:`BENCH_SEED`, full realism)."""
+    first ``samples`` textured planes (seed :data:`BENCH_SEED`, full realism; ``overrides``
+    replace dataset options, e.g. to switch a realism factor off)."""
     ev = EvalConfig(samples=samples, seed=BENCH_SEED, height=size, width=size)
-    data = DataConfig(**{**DataConfig().__dict__, "options": dict(ev.options)})
+    data = DataConfig(**{**DataConfig().__dict__, "options": {**ev.options, **(overrides or {})}})
     with torch.no_grad():
         return collect(model, make_dataset(data, _model_cfg(model), ev.seed, size, size), samples)
 
