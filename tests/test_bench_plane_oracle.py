@@ -1,5 +1,6 @@
-"""The whole-plane oracle of benchmarks/bench_plane_oracle.py: the cross residual vanishes at the true
-depth, the taper's model leaves pure noise indifferent to the depth, and bad inputs are refused."""
+"""The cross-residual likelihood (benchmarks/residual_likelihood.py) and the oracles built on it: the
+residual vanishes at the true depth, the taper's model leaves pure noise indifferent to the depth (whole
+frame and per tile), a tile covering the valid region is the whole-frame likelihood, bad inputs are refused."""
 
 from __future__ import annotations
 
@@ -7,8 +8,8 @@ import pytest
 import torch
 
 from benchmarks.bench_bound import psf_model
-from benchmarks.bench_plane_oracle import (CLEAN_WORLD, cross_residual_nll, fit_plane, plane_frames,
-                                           tukey_window)
+from benchmarks.bench_plane_oracle import CLEAN_WORLD, fit_plane, plane_frames
+from benchmarks.residual_likelihood import cross_residual_nll, tile_cross_residual_nll, tukey_window, valid_residual
 from data_synth import DefocusPairDataset
 from data_synth.psf import PSFModel
 from tdfd import Camera
@@ -101,3 +102,63 @@ def test_tukey_window_and_bad_inputs():
         fit_plane(y, y, REF, [], 1.0, 1.0)
     with pytest.raises(InputError):
         tukey_window(8, fraction=1.5)
+
+
+def test_a_tile_covering_the_valid_region_is_the_whole_frame_likelihood():
+    k = _kernels(size=15)
+    g = torch.Generator().manual_seed(3)
+    y1, y2 = (torch.rand(96, 96, generator=g, dtype=torch.float64) for _ in range(2))
+    whole = cross_residual_nll(y1, y2, k[:, 0], k[:, 1], 0.5, 2.0)
+    tiles = tile_cross_residual_nll(y1, y2, k[:, 0], k[:, 1], torch.tensor([0.5]), torch.tensor([2.0]), [(7, 7)], 82,
+                                    chunk=4)
+    assert tiles.shape == (len(QS), 1)
+    torch.testing.assert_close(tiles[:, 0], whole, rtol=1e-10, atol=0.0)
+    # a tile is cut from the residual at its own place
+    v = valid_residual(y1, y2, k[:, 0], k[:, 1])
+    assert v.shape == (len(QS), 82, 82)
+    one = tile_cross_residual_nll(y1, y2, k[:, 0], k[:, 1], torch.tensor([1.0]), torch.tensor([1.0]), [(20, 30)], 32)
+    again = tile_cross_residual_nll(y1[13:59, 23:69], y2[13:59, 23:69],
+                                    k[:, 0], k[:, 1], torch.tensor([1.0]), torch.tensor([1.0]), [(7, 7)], 32)
+    torch.testing.assert_close(one, again, rtol=1e-9, atol=0.0)
+
+
+def test_per_tile_pure_noise_prefers_no_depth_and_each_noise_free_tile_finds_its_depth():
+    k = _kernels()
+    origins = [(16, 16), (16, 80), (80, 16), (80, 80)]
+    ones = torch.ones(len(origins), dtype=torch.float64)
+    acc = []
+    for seed in range(8):
+        g = torch.Generator().manual_seed(seed)
+        y1, y2 = (torch.randn(160, 160, generator=g, dtype=torch.float64) for _ in range(2))
+        acc.append(tile_cross_residual_nll(y1, y2, k[:, 0], k[:, 1], ones, ones, origins, 64))
+    mean = torch.cat(acc, 1).mean(1)
+    assert float((mean - 1.0).abs().max()) < 0.04, mean
+    s = _planes(noise=False)[0]
+    d = float(s["depth"].median())
+    grid = torch.tensor([1.0 / d - 0.1, 1.0 / d, 1.0 / d + 0.1], dtype=torch.float64)
+    sig = torch.tensor([[float(v) for v in camera_sigmas(REF, 1.0 / float(q))] for q in grid], dtype=torch.float64)
+    kk = psf_model(s["params"]).kernels(sig.reshape(-1), size=31).reshape(3, 2, 31, 31)
+    nll = tile_cross_residual_nll(s["image_f1"][0], s["image_f2"][0], kk[:, 0], kk[:, 1], ones * 1e-6, ones * 1e-6,
+                                  origins, 64)
+    assert torch.equal(nll.argmin(0), torch.ones(len(origins), dtype=torch.long)), nll
+
+
+def test_per_tile_bad_inputs_are_refused():
+    k = _kernels(size=15)
+    y = torch.rand(96, 96, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    one = torch.ones(1, dtype=torch.float64)
+    with pytest.raises(ShapeError):  # leaves the valid residual
+        tile_cross_residual_nll(y, y, k[:, 0], k[:, 1], one, one, [(6, 7)], 32)
+    with pytest.raises(ShapeError):
+        tile_cross_residual_nll(y, y, k[:, 0], k[:, 1], one, one, [(7, 60)], 32)
+    with pytest.raises(ShapeError):
+        tile_cross_residual_nll(y, y, k[:, 0], k[:, 1], one, one, [(7, 7)], 8)
+    with pytest.raises(InputError):  # one variance per tile
+        tile_cross_residual_nll(y, y, k[:, 0], k[:, 1], torch.ones(2), one, [(7, 7)], 32)
+    for bad in (0.0, float("nan"), float("inf")):
+        with pytest.raises(InputError):
+            tile_cross_residual_nll(y, y, k[:, 0], k[:, 1], one * bad, one, [(7, 7)], 32)
+    with pytest.raises(InputError):
+        tile_cross_residual_nll(y, y, k[:, 0], k[:, 1], one, one, [(7, 7)], 32, chunk=0)
+    with pytest.raises(InputError):
+        tile_cross_residual_nll(y, y, k[:, 0], k[:, 1], one, one, [(7, 7)], 32, band=0.7)
