@@ -43,22 +43,19 @@ from dataclasses import replace
 import torch
 from tqdm import tqdm
 
-from benchmarks.bench_bound import STRIDE, TILE, psf_model
+from benchmarks.bench_bound import MEDIAN_ABS, STRIDE, TILE, psf_model
 from benchmarks.bench_plane_oracle import CLEAN_WORLD, Q_GRID, SHAPE_GRID, plane_frames
 from benchmarks.bench_refinement import BENCH_SEED, bench_tiles
-from benchmarks.bench_tile_oracle import MAX_KERNEL, SEED_WINDOW, interior_origins, tile_noise
-from benchmarks.report import ROOT, machine, markdown_table, update_section
-from benchmarks.residual_likelihood import _band_weight, tile_cross_residual_nll
+from benchmarks.bench_tile_oracle import (SEED_WINDOW, interior_origins, profile_tiles, seed_mask, tile_nll_stack,
+                                          tile_noise)
+from benchmarks.report import ROOT, comma_choices, machine, markdown_table, update_section
+from benchmarks.residual_likelihood import _band_weight
 from data_synth import DefocusPairDataset
-from tdfd import Camera
 from tdfd.errors import InputError
 from tdfd.model import DFDModel
-from tdfd.optics.thin_lens import camera_sigmas
 from training.config import EvalConfig
 
 __all__ = ["seeded_fit", "model_sigma", "sigma_factor", "fuse", "paired_bootstrap", "main"]
-
-MEDIAN_ABS = 0.6745
 
 
 def seeded_fit(nll: torch.Tensor, grid: torch.Tensor, seed_q: torch.Tensor, bins: float,
@@ -75,29 +72,17 @@ def seeded_fit(nll: torch.Tensor, grid: torch.Tensor, seed_q: torch.Tensor, bins
     Returns:
         ``q`` ``(T,)`` (parabolic refinement, at most one step), ``sigma_q`` ``(T,)`` (``inf`` where
         the minimum lies on the window's edge or the curvature is not positive), and the index
-        of the candidate shared by the image (the lowest sum of the tiles' minima).
+        of the candidate shared by the image (:func:`benchmarks.bench_tile_oracle.profile_tiles`).
     """
     if nll.ndim != 3 or nll.shape[1] != grid.shape[0] or seed_q.shape != (nll.shape[2],):
         raise InputError(f"need nll (C, Q, T), grid (Q,), seed_q (T,); got {tuple(nll.shape)}, "
                          f"{tuple(grid.shape)}, {tuple(seed_q.shape)}")
-    if not (window > 0 and bins > 0):
-        raise InputError(f"window and bins must be > 0, got {window}, {bins}")
-    step = float(grid[1] - grid[0])
-    near = (grid[:, None] - seed_q[None]).abs() <= window * seed_q[None]
-    near[(grid[:, None] - seed_q[None]).abs().argmin(0), torch.arange(seed_q.shape[0])] = True
-    masked = torch.where(near[None], nll, torch.full_like(nll, math.inf))
-    j = int(masked.min(1).values.sum(1).argmin())
-    m = masked[j]
-    k = m.argmin(0).clamp(1, grid.shape[0] - 2)
-    t = torch.arange(m.shape[1])
-    a, b, c = m[k - 1, t], m[k, t], m[k + 1, t]
-    den = a - 2 * b + c
-    ok = torch.isfinite(den) & (den > 0)
-    off = torch.where(ok, (0.5 * (a - c) / torch.where(ok, den, torch.ones_like(den))).clamp(-1, 1),
-                      torch.zeros_like(den))
-    q = grid[k] + off * step
-    sigma = torch.where(ok, (step ** 2 / (bins * torch.where(ok, den, torch.ones_like(den)))).sqrt(),
-                        torch.full_like(den, math.inf))
+    if not bins > 0:
+        raise InputError(f"bins must be > 0, got {bins}")
+    q, j, curvature = profile_tiles(nll, grid, seed_mask(grid, seed_q, window))
+    ok = torch.isfinite(curvature)  # finite only where positive
+    sigma = torch.where(ok, 1.0 / (bins * torch.where(ok, curvature, torch.ones_like(curvature))).sqrt(),
+                        torch.full_like(curvature, math.inf))
     return q, sigma, j
 
 
@@ -164,8 +149,6 @@ def run_world(world: str, samples: int, model: DFDModel) -> list[dict]:
     ev = EvalConfig(samples=samples, seed=BENCH_SEED, height=256, width=256)
     ds = DefocusPairDataset(size=256, camera=camera, seed=BENCH_SEED, tile=TILE, stride=STRIDE, **{**ev.options, **over})
     origins, inner = interior_origins(256)
-    sig_all = torch.tensor([[float(s) for s in camera_sigmas(camera, 1 / float(q))] for q in Q_GRID],
-                           dtype=torch.float64)
     bins = float(_band_weight(TILE, TILE, 0.25).sum()) / 2.0
     rows = []
     for i in tqdm(range(samples), desc=f"likelihood stage ({world})", mininterval=10.0):
@@ -176,18 +159,14 @@ def run_world(world: str, samples: int, model: DFDModel) -> list[dict]:
         y1, y2, _, _ = plane_frames(s, match_gain=True)
         nu1, nu2 = tile_noise(p, y1, origins), tile_noise(p, y2, origins)
         seed = 1.0 / ref[i][inner, inner].flatten()
-        idx = ((Q_GRID[:, None] - seed[None]).abs() <= SEED_WINDOW * seed[None] + 0.011).any(1).nonzero().flatten()
+        needed = seed_mask(Q_GRID, seed).any(1)  # only the hypotheses some tile searches
         row = {"index": i, "true_q": (1.0 / true[i][inner, inner].flatten()).tolist(), "model_q": seed.tolist(),
                "model_sigma": model_sigma(conf[i][inner, inner].flatten().clamp(1e-9, 1.0),
                                           model.confidence_scale).tolist()}
         base = psf_model(p)
         for mode in ("known", "shape"):
             cands = [base] if mode == "known" else [replace(base, shape=sh) for sh in SHAPE_GRID]
-            stack = torch.full((len(cands), len(Q_GRID), len(origins)), math.inf, dtype=torch.float64)
-            for c, psf in enumerate(cands):
-                size = min(psf.kernel_size(float(sig_all.abs().max())), MAX_KERNEL) | 1
-                ks = psf.kernels(sig_all[idx].reshape(-1), size=size).reshape(len(idx), 2, size, size)
-                stack[c, idx] = tile_cross_residual_nll(y1, y2, ks[:, 0], ks[:, 1], nu1, nu2, origins, TILE)
+            stack = tile_nll_stack(y1, y2, camera, cands, nu1, nu2, origins, only=needed)
             q, sq, _ = seeded_fit(stack, Q_GRID, seed, bins)
             row[f"{mode}_q"], row[f"{mode}_sigma"] = q.tolist(), (sq / q).tolist()
         rows.append(row)
@@ -228,9 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model", default=str(ROOT / "models" / "reference"))
     p.add_argument("--no-write", action="store_true", help="print only; leave docs/ alone")
     args = p.parse_args(argv)
-    worlds = [w.strip() for w in args.world.split(",") if w.strip()]
-    if not worlds or any(w not in ("clean", "full") for w in worlds):
-        p.error(f"--world takes clean and/or full, got {args.world!r}")
+    worlds = comma_choices(p, args.world, ("clean", "full"), "--world")
     torch.set_num_threads(2)
     model = DFDModel.load(args.model)
     med = statistics.median

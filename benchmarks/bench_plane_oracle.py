@@ -47,7 +47,7 @@ from tqdm import tqdm
 from benchmarks.bench_bound import (MEDIAN_ABS, depth_variances, plane_fisher, psf_model, psf_prior_variance,
                                     sample_sensor)
 from benchmarks.bench_refinement import BENCH_SEED, bench_tiles
-from benchmarks.report import ROOT, machine, markdown_table, update_section
+from benchmarks.report import ROOT, comma_choices, machine, markdown_table, update_section
 from benchmarks.residual_likelihood import argmin_parabolic, cross_residual_nll
 from data_synth import DefocusPairDataset
 from data_synth.params import SynthConfig
@@ -120,9 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-write", action="store_true", help="print only; leave docs/ alone")
     p.add_argument("--rows", default="", help="also write every plane's errors and bounds to this JSON file")
     args = p.parse_args(argv)
-    modes = [m.strip() for m in args.psf.split(",") if m.strip()]
-    if not modes or any(m not in ("known", "shape") for m in modes):
-        p.error(f"--psf takes known and/or shape, got {args.psf!r}")
+    modes = comma_choices(p, args.psf, ("known", "shape"), "--psf")
     torch.set_num_threads(2)
     camera = Camera.preset("reference")
     ev = EvalConfig(samples=args.samples, seed=BENCH_SEED, height=args.size, width=args.size)

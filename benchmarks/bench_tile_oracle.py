@@ -49,8 +49,8 @@ from benchmarks.bench_bound import (STRIDE, TILE, depth_variances, median_at_bou
                                     psf_prior_variance, sample_sensor, tile_fisher)
 from benchmarks.bench_plane_oracle import CLEAN_WORLD, GROSS, Q_GRID, SHAPE_GRID, plane_frames
 from benchmarks.bench_refinement import BENCH_SEED, bench_tiles
-from benchmarks.report import ROOT, machine, markdown_table, update_section
-from benchmarks.residual_likelihood import argmin_parabolic, tile_cross_residual_nll
+from benchmarks.report import ROOT, comma_choices, machine, markdown_table, update_section
+from benchmarks.residual_likelihood import parabolic_minima, tile_cross_residual_nll
 from data_synth import DefocusPairDataset
 from data_synth.params import SynthConfig
 from data_synth.psf import PSFModel
@@ -60,7 +60,8 @@ from tdfd.model import DFDModel
 from tdfd.optics.thin_lens import camera_sigmas
 from training.config import EvalConfig
 
-__all__ = ["SEED_WINDOW", "interior_origins", "tile_noise", "tile_nll_stack", "fit_tiles", "main"]
+__all__ = ["SEED_WINDOW", "interior_origins", "tile_noise", "tile_nll_stack", "seed_mask", "profile_tiles", "fit_tiles",
+           "main"]
 
 MAX_KERNEL = 2 * STRIDE + 1  # a half-width of one stride keeps the interior tiles valid
 SEED_WINDOW = 0.05  # the seeded oracle searches within 5 % of the model's q
@@ -90,48 +91,74 @@ def tile_noise(params: dict, y: torch.Tensor, origins: list[tuple[int, int]]) ->
 
 def tile_nll_stack(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, psfs: list[PSFModel], nu1: torch.Tensor,
                    nu2: torch.Tensor, origins: list[tuple[int, int]], band: float = 0.25,
-                   grid: torch.Tensor = Q_GRID) -> torch.Tensor:
+                   grid: torch.Tensor = Q_GRID, only: torch.Tensor | None = None) -> torch.Tensor:
     """``(C, Q, T)``: every candidate PSF's per-tile NLL over the grid of ``q`` (1/m)
-    (:func:`~benchmarks.residual_likelihood.tile_cross_residual_nll`)."""
+    (:func:`~benchmarks.residual_likelihood.tile_cross_residual_nll`); with ``only`` (a ``(Q,)``
+    mask) just those hypotheses are evaluated and the others are ``inf``."""
     if not psfs:
         raise InputError("the tile oracle needs at least one candidate PSF")
+    if only is not None and only.shape != grid.shape:
+        raise InputError(f"only must be a ({len(grid)},) mask of the grid, got {tuple(only.shape)}")
     sig = torch.tensor([[float(s) for s in camera_sigmas(camera, 1.0 / float(q))] for q in grid],
                        dtype=torch.float64)
-    out = []
-    for psf in psfs:
+    idx = torch.arange(len(grid)) if only is None else only.nonzero().flatten()
+    out = torch.full((len(psfs), len(grid), len(origins)), math.inf, dtype=torch.float64)
+    for c, psf in enumerate(psfs):
         size = min(psf.kernel_size(float(sig.abs().max())), MAX_KERNEL) | 1
-        ks = psf.kernels(sig.reshape(-1), size=size).reshape(len(grid), 2, size, size)
-        out.append(tile_cross_residual_nll(y1, y2, ks[:, 0], ks[:, 1], nu1, nu2, origins, TILE, band))
-    return torch.stack(out)
+        ks = psf.kernels(sig[idx].reshape(-1), size=size).reshape(len(idx), 2, size, size)
+        out[c, idx] = tile_cross_residual_nll(y1, y2, ks[:, 0], ks[:, 1], nu1, nu2, origins, TILE, band)
+    return out
+
+
+def seed_mask(grid: torch.Tensor, seed_q: torch.Tensor, window: float = SEED_WINDOW) -> torch.Tensor:
+    """``(Q, T)``: the hypotheses within ``window`` (relative) of each tile's seed ``(T,)``, and
+    for a seed off the grid at least its nearest grid point."""
+    if window <= 0:
+        raise InputError(f"seed_window must be > 0, got {window}")
+    if seed_q.ndim != 1:
+        raise InputError(f"need one seed per tile, (T,), got {tuple(seed_q.shape)}")
+    dist = (grid[:, None] - seed_q[None, :]).abs()
+    near = dist <= window * seed_q[None, :]
+    near[dist.argmin(0), torch.arange(seed_q.shape[0])] = True
+    return near
+
+
+def profile_tiles(nll: torch.Tensor, grid: torch.Tensor = Q_GRID, mask: torch.Tensor | None = None
+                  ) -> tuple[torch.Tensor, int, torch.Tensor]:
+    """The candidate PSF shared by the image (the one whose tiles' minimum NLLs sum lowest) of
+    :func:`tile_nll_stack`'s ``(C, Q, T)``, each hypothesis outside ``mask`` ``(Q, T)`` left out:
+    its tiles' ``q`` ``(T,)``, its index, and the curvatures at the minima ``(T,)``
+    (:func:`~benchmarks.residual_likelihood.parabolic_minima`)."""
+    if mask is not None:
+        nll = torch.where(mask[None], nll, torch.full_like(nll, math.inf))
+    best: tuple[float, torch.Tensor, int, torch.Tensor] = (math.inf, torch.empty(0), -1, torch.empty(0))
+    for j in range(nll.shape[0]):
+        q, value, curvature = parabolic_minima(nll[j], grid)
+        total = sum(value.tolist())
+        if total < best[0]:
+            best = (total, q, j, curvature)
+    return best[1], best[2], best[3]
 
 
 def fit_tiles(nll: torch.Tensor, grid: torch.Tensor = Q_GRID, seed_q: torch.Tensor | None = None,
               seed_window: float = SEED_WINDOW) -> tuple[torch.Tensor, int]:
     """Each tile's inverse depth ``q`` (1/m) ``(T,)`` from :func:`tile_nll_stack`'s ``(C, Q, T)``,
-    the candidates profiled as one PSF shared by the image (the candidate whose tiles' minimum
-    NLLs sum lowest), and that candidate's index.
+    the candidates profiled as one PSF shared by the image (:func:`profile_tiles`), and that
+    candidate's index.
 
     With ``seed_q`` ``(T,)`` (another estimator's per-tile ``q``) each tile searches only
-    ``q`` within ``seed_window`` (relative) of its seed: a likelihood stage that refines a
-    CNN's map rather than replacing it.
+    ``q`` within ``seed_window`` (relative) of its seed (:func:`seed_mask`): a likelihood stage
+    that refines a CNN's map rather than replacing it.
     """
     if seed_window <= 0:
         raise InputError(f"seed_window must be > 0, got {seed_window}")
+    mask = None
     if seed_q is not None:
         if seed_q.shape != (nll.shape[-1],):
             raise InputError(f"need one seed per tile ({nll.shape[-1]}), got {tuple(seed_q.shape)}")
-        near = (grid[:, None] - seed_q[None, :]).abs() <= seed_window * seed_q[None, :]  # (Q, T)
-        # a seed off the grid keeps its nearest grid point
-        nearest = (grid[:, None] - seed_q[None, :]).abs().argmin(0)
-        near[nearest, torch.arange(near.shape[1])] = True
-        nll = torch.where(near[None], nll, torch.full_like(nll, math.inf))
-    best: tuple[float, torch.Tensor, int] = (math.inf, torch.empty(0), -1)
-    for j in range(nll.shape[0]):
-        fits = [argmin_parabolic(nll[j, :, t], grid) for t in range(nll.shape[2])]
-        total = sum(v for _, v in fits)
-        if total < best[0]:
-            best = (total, torch.tensor([q for q, _ in fits], dtype=torch.float64), j)
-    return best[1], best[2]
+        mask = seed_mask(grid, seed_q, seed_window)
+    q, j, _ = profile_tiles(nll, grid, mask)
+    return q, j
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -143,9 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-write", action="store_true", help="print only; leave docs/ alone")
     p.add_argument("--rows", default="", help="also write every plane's tile errors and bounds to this JSON file")
     args = p.parse_args(argv)
-    modes = [m.strip() for m in args.psf.split(",") if m.strip()]
-    if not modes or any(m not in ("known", "shape") for m in modes):
-        p.error(f"--psf takes known and/or shape, got {args.psf!r}")
+    modes = comma_choices(p, args.psf, ("known", "shape"), "--psf")
     size = 256
     torch.set_num_threads(2)
     camera = Camera.preset("reference")

@@ -7,6 +7,7 @@ the command that reproduces it.
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import re
@@ -62,6 +63,15 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> s
     out = ["| " + " | ".join(map(str, header)) + " |", "|" + "---|" * len(header)]
     out += ["| " + " | ".join(map(str, r)) + " |" for r in rows]
     return "\n".join(out)
+
+
+def comma_choices(parser: argparse.ArgumentParser, value: str, allowed: Sequence[str], option: str) -> list[str]:
+    """The items of a comma-separated option, each one of ``allowed`` (at least one), or the
+    parser's usage error naming the option."""
+    items = [v.strip() for v in value.split(",") if v.strip()]
+    if not items or any(v not in allowed for v in items):
+        parser.error(f"{option} takes {' and/or '.join(allowed)}, got {value!r}")
+    return items
 
 
 def with_model_option(command: str, model: str | Path) -> str:

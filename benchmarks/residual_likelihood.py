@@ -41,7 +41,7 @@ import torch
 from tdfd.errors import InputError, ShapeError
 
 __all__ = ["TAPER_FRACTION", "tukey_window", "valid_residual", "cross_residual_nll", "tile_cross_residual_nll",
-           "argmin_parabolic"]
+           "parabolic_minima", "argmin_parabolic"]
 
 TAPER_FRACTION = 0.1
 
@@ -231,12 +231,29 @@ def tile_cross_residual_nll(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor
     return torch.cat(out)
 
 
-def argmin_parabolic(nll: torch.Tensor, grid: torch.Tensor) -> tuple[float, float]:
-    """The grid minimum of ``nll`` ``(Q,)`` refined by the parabola through it and its two
-    neighbours (moved by at most one step; the grid's ends, and values of ``inf`` that mask
-    hypotheses out, are not extrapolated): ``(argmin, value at the grid minimum)``."""
-    i = int(nll.argmin().clamp(1, len(grid) - 2))
-    a, b, c = (float(nll[j]) for j in (i - 1, i, i + 1))
+def parabolic_minima(nll: torch.Tensor, grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Each column's grid minimum of ``nll`` ``(Q, T)`` refined by the parabola through it and its
+    two neighbours (moved by at most one step; the grid's ends, and values of ``inf`` that mask
+    hypotheses out, are not extrapolated).
+
+    Returns:
+        ``(q, value, curvature)``, each ``(T,)``: the refined minimum, the NLL at the grid
+        minimum, and the parabola's second derivative ``d2 NLL / dq2`` (``nan`` where it is not
+        finite and positive: a minimum on the grid's or a mask's edge).
+    """
+    step = float(grid[1] - grid[0])
+    k = nll.argmin(0).clamp(1, len(grid) - 2)
+    t = torch.arange(nll.shape[1])
+    a, b, c = nll[k - 1, t], nll[k, t], nll[k + 1, t]
     den = a - 2 * b + c
-    off = max(-1.0, min(1.0, 0.5 * (a - c) / den)) if math.isfinite(den) and den > 0 else 0.0
-    return float(grid[i]) + off * float(grid[1] - grid[0]), b
+    ok = torch.isfinite(den) & (den > 0)
+    safe = torch.where(ok, den, torch.ones_like(den))
+    off = torch.where(ok, (0.5 * (a - c) / safe).clamp(-1.0, 1.0), torch.zeros_like(den))
+    curvature = torch.where(ok, safe / step ** 2, torch.full_like(den, math.nan))
+    return grid[k] + off * step, b, curvature
+
+
+def argmin_parabolic(nll: torch.Tensor, grid: torch.Tensor) -> tuple[float, float]:
+    """:func:`parabolic_minima` of one ``(Q,)`` curve: ``(argmin, value at the grid minimum)``."""
+    q, value, _ = parabolic_minima(nll[:, None], grid)
+    return float(q[0]), float(value[0])
