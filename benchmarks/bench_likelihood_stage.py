@@ -3,31 +3,35 @@ r"""A likelihood stage after the CNN: each tile's cross-residual fit, seeded by 
 Run from the repository root::
 
     .venv/bin/python -m benchmarks.bench_likelihood_stage [--samples 256] [--world clean,full]
+        [--psf product,shape,known] [--structure 32]
 
-What a model-based stage in the product would add to the shipped model, measured on the
-refinement benchmark's planes (0.3-1.0 m; section ``likelihood_stage``). For each interior tile
-of the 64/32 grid (:func:`benchmarks.bench_tile_oracle.interior_origins`):
+What a model-based stage adds to the shipped model (section ``likelihood_stage``), on the
+refinement benchmark's planes (0.3-1.0 m) and, for the product stage, on the structure
+benchmark's scenes. Per interior tile of the 64/32 grid
+(:func:`benchmarks.bench_tile_oracle.interior_origins`):
 
-1. **Seeded fit**: the per-tile cross-residual likelihood
-   (:func:`benchmarks.residual_likelihood.tile_cross_residual_nll`) searched only within
-   :data:`~benchmarks.bench_tile_oracle.SEED_WINDOW` of the model's inverse depth, the PSF's
-   shape shared by the image and profiled over
-   :data:`~benchmarks.bench_plane_oracle.SHAPE_GRID` (its diffraction and aberrations told:
-   the oracle part), or the PSF known (``known``). Frame 2's mean is matched to frame 1's.
-2. **Its variance** from the curvature at the minimum: ``var(q) = 1 / L''(q)`` with ``L`` the
-   summed NLL over the band's independent bins (half the half-plane count).
-3. **The model's variance** from its confidence ``conf = 1 / (1 + (b / b0)^2)``: the Laplace
-   scale ``b`` of the relative error, variance ``2 b^2`` (:mod:`tdfd.model.combined`).
-4. **Fusion**: the inverse-variance mean of the two inverse depths, each variance times a scale
-   factor fitted on the *other* half of the planes (even / odd sample index) so that the
-   median of ``|e| / sigma`` there is 0.674 (both raw variances are off: the taper's correlated
-   bins make the curvature too sharp, the model's scale is conservative). The border ring
-   keeps the model's estimate.
+- ``product``: the tdfd stage (:mod:`tdfd.dfd.likelihood_stage`) as a user runs it: told only
+  each frame's black level (a sensor constant), the PSF profiled over every shape with and
+  without the diffraction of the working f-number, the noise estimated from the fit, the two
+  sigmas' factors from ``models/reference.likelihood.json`` (fitted on training scenes by
+  ``training/fit_likelihood_stage.py``: nothing is fitted on the benchmark);
+- ``shape`` and ``known``, oracles: the seeded fit of
+  :func:`tdfd.dfd.cross_residual.tile_cross_residual_nll` within
+  :data:`~tdfd.dfd.seeded_fit.SEED_WINDOW` of the model's inverse depth, the PSF's shape
+  profiled over :data:`~benchmarks.bench_plane_oracle.SHAPE_GRID` with its diffraction and
+  aberrations told (or the PSF known), the noise told (the sample's sensor); the variance from
+  the curvature, ``var(q) = 1 / L''(q)`` (``L`` the summed NLL over the band's independent
+  bins); the model's from its confidence ``conf = 1 / (1 + (b / b0)^2)`` (variance ``2 b^2``);
+  each variance times a factor fitted on the *other* half of the planes (even / odd sample
+  index) so that the median of ``|e| / sigma`` there is 0.674.
 
-Scores: the median relative error over the interior tiles, per plane the median tile's, and
-the fused-minus-model difference with a paired bootstrap over planes (95 % interval). The
-nuisances: ``clean`` switches off breathing, misregistration, vignetting and gain jitter,
-``full`` keeps them (the stage models none of them).
+Scores: the median relative error over the interior tiles, per plane the median tile's, and the
+fused-minus-model difference with a paired bootstrap over planes (95 % interval). The nuisances:
+``clean`` switches off breathing, misregistration, vignetting and gain jitter, ``full`` keeps
+them (no estimator here models them). On the structure scenes (480x640, the whole world) the
+product stage is scored on every tile in the working range (its ring keeps the model's
+estimate), away from occlusion edges and all, with a bootstrap over scenes; and its cost is
+timed beside the model's.
 """
 
 from __future__ import annotations
@@ -43,19 +47,26 @@ from dataclasses import replace
 import torch
 from tqdm import tqdm
 
-from benchmarks.bench_bound import MEDIAN_ABS, STRIDE, TILE, psf_model
+from benchmarks.bench_bound import STRIDE, TILE, psf_model
 from benchmarks.bench_plane_oracle import CLEAN_WORLD, Q_GRID, SHAPE_GRID, plane_frames
 from benchmarks.bench_refinement import BENCH_SEED, bench_tiles
-from benchmarks.bench_tile_oracle import (SEED_WINDOW, interior_origins, profile_tiles, seed_mask, tile_nll_stack,
-                                          tile_noise)
-from benchmarks.report import ROOT, comma_choices, machine, markdown_table, update_section
-from benchmarks.residual_likelihood import _band_weight
+from benchmarks.bench_structure import STRUCTURE_SEED
+from benchmarks.depth_edges import edge_tiles, tile_depth_spread
+from benchmarks.uncertainty import resample_scenes
+from benchmarks.bench_tile_oracle import SEED_WINDOW, interior_origins, profile_tiles, tile_nll_stack, tile_noise
+from benchmarks.report import ROOT, comma_choices, machine, markdown_table, median_time, update_section
+from tdfd.dfd.cross_residual import independent_bins
+from tdfd.dfd.inverse_variance import LikelihoodScales, fuse, model_sigma, sigma_factor
+from tdfd.dfd.likelihood_stage import LikelihoodStage
+from tdfd.dfd.seeded_fit import seed_mask
 from data_synth import DefocusPairDataset
 from tdfd.errors import InputError
 from tdfd.model import DFDModel
 from training.config import EvalConfig
+from training.data import STRUCTURE_LAYOUTS, textured_scenes
+from training.fit_likelihood_stage import black_levels
 
-__all__ = ["seeded_fit", "model_sigma", "sigma_factor", "fuse", "paired_bootstrap", "main"]
+__all__ = ["seeded_fit", "paired_bootstrap", "main"]
 
 
 def seeded_fit(nll: torch.Tensor, grid: torch.Tensor, seed_q: torch.Tensor, bins: float,
@@ -86,43 +97,6 @@ def seeded_fit(nll: torch.Tensor, grid: torch.Tensor, seed_q: torch.Tensor, bins
     return q, sigma, j
 
 
-def model_sigma(confidence: torch.Tensor, confidence_scale: float) -> torch.Tensor:
-    """The model's standard deviation of the relative error from its confidence:
-    ``sqrt(2) b0 sqrt(1/conf - 1)`` (a Laplace scale ``b``; :mod:`tdfd.model.combined`).
-
-    Example:
-        >>> round(float(model_sigma(torch.tensor([0.5]), 0.01)[0]), 5)
-        0.01414
-    """
-    if not bool(((confidence > 0) & (confidence <= 1)).all()):
-        raise InputError("confidences must lie in (0, 1]")
-    return math.sqrt(2.0) * confidence_scale * (1.0 / confidence - 1.0).clamp_min(0).sqrt()
-
-
-def sigma_factor(errors: torch.Tensor, sigmas: torch.Tensor) -> float:
-    """The factor on ``sigmas`` that makes the median of ``|errors| / sigma`` 0.674 (a normal's),
-    over the finite, positive sigmas."""
-    ok = torch.isfinite(sigmas) & (sigmas > 0)
-    if not bool(ok.any()):
-        raise InputError("no finite positive sigma to calibrate")
-    return float((errors[ok].abs() / sigmas[ok]).median()) / MEDIAN_ABS
-
-
-def fuse(q_a: torch.Tensor, sigma_a: torch.Tensor, q_b: torch.Tensor, sigma_b: torch.Tensor) -> torch.Tensor:
-    """Inverse-variance mean of two estimates; an infinite sigma gives its estimate no weight.
-
-    Example:
-        >>> fuse(torch.tensor([1.0, 1.0]), torch.tensor([1.0, float("inf")]),
-        ...      torch.tensor([2.0, 2.0]), torch.tensor([1.0, 1.0])).tolist()
-        [1.5, 2.0]
-    """
-    wa = torch.where(torch.isfinite(sigma_a), 1.0 / sigma_a.clamp_min(1e-300) ** 2, torch.zeros_like(sigma_a))
-    wb = torch.where(torch.isfinite(sigma_b), 1.0 / sigma_b.clamp_min(1e-300) ** 2, torch.zeros_like(sigma_b))
-    if not bool((wa + wb > 0).all()):
-        raise InputError("every pair needs at least one finite sigma")
-    return (wa * q_a + wb * q_b) / (wa + wb)
-
-
 def paired_bootstrap(a: list[list[float]], b: list[list[float]], resamples: int = 1000, seed: int = 0
                      ) -> tuple[float, float, float]:
     """Mean and 95 % interval of ``median |a| - median |b|`` over tiles pooled from planes drawn
@@ -138,9 +112,11 @@ def paired_bootstrap(a: list[list[float]], b: list[list[float]], resamples: int 
     return statistics.mean(diffs), diffs[int(0.025 * resamples)], diffs[int(0.975 * resamples) - 1]
 
 
-def run_world(world: str, samples: int, model: DFDModel) -> list[dict]:
-    """Every plane's interior tiles: true ``q``, the model's ``q`` and sigma, and per mode the
-    seeded fit's ``q`` and sigma (relative)."""
+def run_world(world: str, samples: int, model: DFDModel, modes: tuple[str, ...] = ("known", "shape"),
+              stage: LikelihoodStage | None = None) -> list[dict]:
+    """Every plane's interior tiles: true ``q``, the model's ``q`` and sigma, per oracle mode the
+    seeded fit's ``q`` and sigma (relative), and with ``stage`` the product stage's fused ``q``
+    (``product_q``) and its own fit's (``product_fit_q``), told only the frames' black level."""
     over = CLEAN_WORLD if world == "clean" else {}
     camera = model.camera
     n = (256 - TILE) // STRIDE + 1
@@ -149,7 +125,7 @@ def run_world(world: str, samples: int, model: DFDModel) -> list[dict]:
     ev = EvalConfig(samples=samples, seed=BENCH_SEED, height=256, width=256)
     ds = DefocusPairDataset(size=256, camera=camera, seed=BENCH_SEED, tile=TILE, stride=STRIDE, **{**ev.options, **over})
     origins, inner = interior_origins(256)
-    bins = float(_band_weight(TILE, TILE, 0.25).sum()) / 2.0
+    bins = independent_bins(TILE)
     rows = []
     for i in tqdm(range(samples), desc=f"likelihood stage ({world})", mininterval=10.0):
         s = ds[i]
@@ -159,18 +135,37 @@ def run_world(world: str, samples: int, model: DFDModel) -> list[dict]:
         y1, y2, _, _ = plane_frames(s, match_gain=True)
         nu1, nu2 = tile_noise(p, y1, origins), tile_noise(p, y2, origins)
         seed = 1.0 / ref[i][inner, inner].flatten()
-        needed = seed_mask(Q_GRID, seed).any(1)  # only the hypotheses some tile searches
+        needed = seed_mask(Q_GRID, seed)  # only the pairs each tile's window searches
         row = {"index": i, "true_q": (1.0 / true[i][inner, inner].flatten()).tolist(), "model_q": seed.tolist(),
                "model_sigma": model_sigma(conf[i][inner, inner].flatten().clamp(1e-9, 1.0),
                                           model.confidence_scale).tolist()}
+        if stage is not None:
+            stage.options["black_level"] = black_levels([p])[0]
+            r = stage(s["image_f1"][None].float(), s["image_f2"][None].float(), 1.0 / (1.0 / ref[i])[None, None],
+                      conf[i][None, None])
+            if not bool(r.fitted[0, 0, inner, inner].all()):
+                raise InputError("the stage left interior tiles unfitted")
+            row["product_q"] = (1.0 / r.depth[0, 0, inner, inner].flatten()).tolist()
+            row["product_fit_q"] = (1.0 / r.depth_fit[0, 0, inner, inner].flatten()).tolist()
         base = psf_model(p)
-        for mode in ("known", "shape"):
+        for mode in modes:
             cands = [base] if mode == "known" else [replace(base, shape=sh) for sh in SHAPE_GRID]
             stack = tile_nll_stack(y1, y2, camera, cands, nu1, nu2, origins, only=needed)
             q, sq, _ = seeded_fit(stack, Q_GRID, seed, bins)
             row[f"{mode}_q"], row[f"{mode}_sigma"] = q.tolist(), (sq / q).tolist()
         rows.append(row)
     return rows
+
+
+def score_product(rows: list[dict]) -> dict[str, list[list[float]]]:
+    """Per plane, the relative depth errors of the model, the product stage's own fit and its
+    fused map (its sigma factors fitted on training scenes: nothing fitted here)."""
+    out: dict[str, list[list[float]]] = {"model": [], "seeded": [], "fused": []}
+    for r in rows:
+        qt = torch.tensor(r["true_q"], dtype=torch.float64)
+        for key, name in (("model", "model_q"), ("seeded", "product_fit_q"), ("fused", "product_q")):
+            out[key].append((qt / torch.tensor(r[name], dtype=torch.float64) - 1.0).tolist())
+    return out
 
 
 def score(rows: list[dict], mode: str) -> dict[str, list[list[float]]]:
@@ -195,8 +190,87 @@ def score(rows: list[dict], mode: str) -> dict[str, list[list[float]]]:
         fl, fc = factors[r["index"] % 2]
         out["model"].append(err(qc, qt))
         out["seeded"].append(err(ql, qt))
-        out["raw"].append(err(fuse(ql, sl, qc, sc), qt))
-        out["fused"].append(err(fuse(ql, fl * sl, qc, fc * sc), qt))
+        out["raw"].append(err(fuse(ql, sl, qc, sc)[0], qt))
+        out["fused"].append(err(fuse(ql, fl * sl, qc, fc * sc)[0], qt))
+    return out
+
+
+def structure_rows(model: DFDModel, stage: LikelihoodStage, scenes: int) -> dict[str, dict[str, torch.Tensor]]:
+    """Per layout of :data:`training.data.STRUCTURE_LAYOUTS`, the first ``scenes`` 480x640 scenes
+    of the structure benchmark (seed :data:`benchmarks.bench_structure.STRUCTURE_SEED`): every tile
+    in the working range with its true depth, the model's depth and confidence, the stage's fused
+    depth and confidence and its own fit, whether it was fitted and whether it lies near an
+    occlusion edge (:func:`benchmarks.depth_edges.edge_tiles`), and its scene."""
+    near, far = model.camera.depth_range_m
+    out = {}
+    for layout in STRUCTURE_LAYOUTS:
+        ds = textured_scenes(model.camera, model.tile, model.stride, layout, (480, 640), STRUCTURE_SEED)
+        acc: dict[str, list[torch.Tensor]] = {k: [] for k in ("true", "model", "model_conf", "fused", "fused_conf",
+                                                             "fit", "fitted", "edge", "spread", "fit_sigma",
+                                                             "scene")}
+        for i in tqdm(range(scenes), desc=f"likelihood stage: {layout}", mininterval=10.0):
+            b = ds.batch([i])
+            i1, i2 = b["image_f1"].float(), b["image_f2"].float()
+            with torch.no_grad():
+                depth, conf = model.analyse(i1, i2).depth_map
+            stage.options["black_level"] = black_levels(b["params"])[0]
+            r = stage(i1, i2, depth, conf)
+            true = b["tile_depth"][0, 0].double()
+            keep = (true >= near) & (true <= far)
+            for key, t in (("true", true), ("model", depth[0, 0]), ("model_conf", conf[0, 0]), ("fused", r.depth[0, 0]),
+                           ("fused_conf", r.confidence[0, 0]), ("fit", r.depth_fit[0, 0]), ("fitted", r.fitted[0, 0]),
+                           ("edge", edge_tiles(b["depth"][0, 0], model.tile, model.stride)),
+                           ("spread", tile_depth_spread(b["depth"][0, 0], model.tile, model.stride)),
+                           ("fit_sigma", r.sigma_fit[0, 0])):
+                acc[key].append(t[keep].double() if t.dtype != torch.bool else t[keep])
+            acc["scene"].append(torch.full((int(keep.sum()),), i))
+        out[layout] = {k: torch.cat(v) for k, v in acc.items()}
+    return out
+
+
+def structure_table(rows: dict[str, dict[str, torch.Tensor]], reps: int = 200) -> list[list]:
+    """Per layout and tile set (away from edges, all): the model's and the fused map's median
+    error, on the fitted tiles the stage's own fit's and the model's, the fused - model difference with its 95 % interval over a bootstrap of the scenes,
+    the share at confidence >= 0.5 and the median error there (model / fused)."""
+    table = []
+    for layout, t in rows.items():
+        for label, sel in (("away from edges", ~t["edge"]), ("all tiles", torch.ones_like(t["edge"]))):
+            e_m = (t["model"][sel] / t["true"][sel] - 1).abs()
+            e_f = (t["fused"][sel] / t["true"][sel] - 1).abs()
+            fitted = sel & t["fitted"]
+            e_fit = (t["fit"][fitted] / t["true"][fitted] - 1).abs()
+            e_mf = (t["model"][fitted] / t["true"][fitted] - 1).abs()
+            scene = t["scene"][sel]
+            diffs = sorted(float(e_f[ix].median() - e_m[ix].median())
+                           for ix in resample_scenes(scene, reps, torch.Generator().manual_seed(0)))
+            conf_m, conf_f = t["model_conf"][sel] >= 0.5, t["fused_conf"][sel] >= 0.5
+            share = lambda c: f"{100 * float(c.double().mean()):.0f} %"  # noqa: E731
+            med = lambda e, c: f"{100 * float(e[c].median()):.2f} %" if bool(c.any()) else "-"  # noqa: E731
+            table.append([layout, label, int(sel.sum()), f"{100 * float(e_m.median()):.2f} %",
+                          f"{100 * float(e_f.median()):.2f} %",
+                          f"{100 * float(e_fit.median()):.2f} % / {100 * float(e_mf.median()):.2f} %"
+                          if e_fit.numel() else "-",
+                          f"{100 * (float(e_f.median()) - float(e_m.median())):+.2f} ({100 * diffs[int(0.025 * reps)]:+.2f} "
+                          f".. {100 * diffs[int(0.975 * reps) - 1]:+.2f})",
+                          f"{share(conf_m)} / {share(conf_f)}", f"{med(e_m, conf_m)} / {med(e_f, conf_f)}"])
+    return table
+
+
+def stage_timing(model: DFDModel, stage: LikelihoodStage, repeats: int = 3) -> list[list[str]]:
+    """Median wall time of the model (torch) and of the stage after it on a 256x256 plane and a
+    480x640 slanted scene (each pair's own black level), side by side."""
+    out = []
+    for layout, size in (("plane", (256, 256)), ("slanted", (480, 640))):
+        s = textured_scenes(model.camera, model.tile, model.stride, layout, size, BENCH_SEED).batch([0])
+        i1, i2 = s["image_f1"].float(), s["image_f2"].float()
+        stage.options["black_level"] = black_levels(s["params"])[0]
+        with torch.no_grad():
+            depth, conf = model.analyse(i1, i2).depth_map
+            t_model, _ = median_time(lambda: model.analyse(i1, i2), repeats, warmup=1)
+        r = stage(i1, i2, depth, conf)
+        t_stage, _ = median_time(lambda: stage(i1, i2, depth, conf), repeats, warmup=0)
+        out.append([f"{layout} {size[0]}x{size[1]}", int(r.fitted.sum()), f"{1000 * t_model:.0f} ms",
+                    f"{1000 * t_stage:.0f} ms"])
     return out
 
 
@@ -204,47 +278,82 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--samples", type=int, default=256, help="the refinement benchmark's first N samples")
     p.add_argument("--world", default="clean,full", help="comma list of: clean, full")
+    p.add_argument("--psf", default="product,shape,known",
+                   help="comma list of: product (the tdfd stage, PSF and noise not told), shape, known (oracles)")
     p.add_argument("--model", default=str(ROOT / "models" / "reference"))
+    p.add_argument("--scales", default="", help="the product stage's sigma factors (default: MODEL.likelihood.json)")
+    p.add_argument("--structure", type=int, default=32, help="structure scenes per layout for the tdfd stage (0: none)")
     p.add_argument("--no-write", action="store_true", help="print only; leave docs/ alone")
+    p.add_argument("--rows", default="", help="also save every plane's and structure tile's figures (torch.save)")
     args = p.parse_args(argv)
+    if args.structure < 0:
+        p.error("--structure must be >= 0")
     worlds = comma_choices(p, args.world, ("clean", "full"), "--world")
+    modes = comma_choices(p, args.psf, ("product", "shape", "known"), "--psf")
     torch.set_num_threads(2)
     model = DFDModel.load(args.model)
+    scales = LikelihoodScales.load(args.scales or f"{args.model}.likelihood.json")
+    stage = LikelihoodStage.for_model(model, scales=scales) if "product" in modes else None
+    oracles = tuple(m for m in modes if m != "product")
     med = statistics.median
     pct = lambda x: f"{100 * x:.2f} %"  # noqa: E731
     table, lines = [], []
+    labels = {"product": "tdfd stage: PSF profiled over every shape and diffraction, noise not told",
+              "shape": "oracle: PSF shape profiled", "known": "oracle: PSF known"}
     t0 = time.perf_counter()
+    saved: dict[str, list[dict]] = {}
     for world in worlds:
-        rows = run_world(world, args.samples, model)
-        for mode, label in (("shape", "PSF shape profiled"), ("known", "PSF known")):
-            sc = score(rows, mode)
+        rows = run_world(world, args.samples, model, oracles, stage)
+        saved[world] = rows
+        for mode in modes:
+            sc = score_product(rows) if mode == "product" else score(rows, mode)
             tile = {k: med(abs(x) for pl in v for x in pl) for k, v in sc.items()}
             plane = {k: med(abs(med(pl)) for pl in v) for k, v in sc.items()}
-            table.append([world, label, len(rows)] + [f"{pct(tile[k])} / {pct(plane[k])}"
-                                                      for k in ("model", "seeded", "raw", "fused")])
+            table.append([world, labels[mode], len(rows)] + [f"{pct(tile[k])} / {pct(plane[k])}" if k in tile else "-"
+                                                             for k in ("model", "seeded", "raw", "fused")])
             mt, lo, hi = paired_bootstrap(sc["fused"], sc["model"])
             mp, plo, phi = paired_bootstrap([[med(pl)] for pl in sc["fused"]], [[med(pl)] for pl in sc["model"]])
-            lines.append(f"- {world}, {label}: fused - model per tile {100 * mt:+.2f} points (95 %: {100 * lo:+.2f} .. "
-                         f"{100 * hi:+.2f}), per plane {100 * mp:+.2f} ({100 * plo:+.2f} .. {100 * phi:+.2f})")
+            lines.append(f"- {world}, {labels[mode]}: fused - model per tile {100 * mt:+.2f} points (95 %: "
+                         f"{100 * lo:+.2f} .. {100 * hi:+.2f}), per plane {100 * mp:+.2f} ({100 * plo:+.2f} .. "
+                         f"{100 * phi:+.2f})")
+    srows = structure_rows(model, stage, args.structure) if stage and args.structure else {}
+    structure = structure_table(srows) if srows else []
+    if args.rows:
+        torch.save({"planes": saved, "structure": srows}, args.rows)
     wall = time.perf_counter() - t0
+    timing = stage_timing(model, stage) if stage is not None else []
+    factors = (f"{', '.join(f'{x:.2f}' for x in scales.fit)}, model {', '.join(f'{x:.2f}' for x in scales.model)} "
+               f"in the bands of the tile's slope split at {', '.join(f'{100 * e:.0f} %' for e in scales.slope_edges)}")
     body = "\n".join([
         f"Machine: {machine()}; the refinement benchmark's first {args.samples} samples (seed {BENCH_SEED}, 256 px), "
         f"its planes in 0.3-1.0 m, the 25 interior tiles of each (the ring keeps the model's estimate and is not "
         f"scored); wall time {wall:.0f} s. Each cell: median over tiles / median over planes of the median tile. "
         f"`seeded`: the cross-residual fit within {100 * SEED_WINDOW:.0f} % of the model's estimate; `fused, raw`: "
         f"inverse-variance mean with the curvature's and the confidence's sigmas as they are; `fused`: each sigma's "
-        f"scale fitted on the other half of the planes (even / odd sample index). The PSF's diffraction and "
-        f"aberrations are told in both modes.",
+        f"scale fitted on the other half of the planes (even / odd sample index) for the oracles, on training "
+        f"scenes for the tdfd stage (`{scales.provenance.get('command', 'no provenance')}`: fit {factors}). The "
+        f"oracles are told the PSF's diffraction and aberrations "
+        f"and the noise; the tdfd stage (`tdfd.dfd.likelihood_stage`) only each frame's black level.",
         "",
-        markdown_table(["world", "PSF", "planes", "model", "seeded", "fused, raw", "fused"], table),
+        markdown_table(["world", "estimator", "planes", "model", "seeded", "fused, raw", "fused"], table),
         "",
         "Paired bootstrap over planes (1000 resamples, seed 0):",
         "",
         *lines,
+        *(["", f"The tdfd stage on the structure benchmark's first {args.structure} scenes per layout (480x640, seed "
+               f"{STRUCTURE_SEED}, the whole world, the tiles in the working range; `near an edge`: as in section "
+               f"`structure`). Interval: 95 % over 200 bootstrap resamples of the scenes. The last two columns: model "
+               f"/ fused.", "",
+               markdown_table(["layout", "tiles", "count", "model", "fused", "fitted tiles: fit / model",
+                               "fused - model (points)",
+                               "confidence >= 0.5", "median error there"], structure)] if structure else []),
+        *(["", "The tdfd stage's cost (median of 3, torch, 2 threads; the model's torch forward beside it):", "",
+           markdown_table(["pair", "tiles fitted", "model", "stage"], timing)] if timing else []),
     ])
     print(body)
     if not args.no_write:
-        cmd = f".venv/bin/python -m benchmarks.bench_likelihood_stage --samples {args.samples} --world {args.world}"
+        cmd = (f".venv/bin/python -m benchmarks.bench_likelihood_stage --samples {args.samples} --world {args.world} "
+               f"--psf {args.psf} --structure {args.structure}")
         update_section("likelihood_stage", "A likelihood stage after the CNN, fused by inverse variance (issue 19)",
                        body, cmd)
     return 0

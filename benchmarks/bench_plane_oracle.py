@@ -13,7 +13,7 @@ sample's own PSF, the sensor's noise levels), and scores it beside the bound and
 model on the same frames.
 
 The oracle is the whole-frame cross-residual likelihood of
-:mod:`benchmarks.residual_likelihood` (``k2(q) * f1 - k1(q) * f2`` on the valid region, Tukey
+:mod:`tdfd.dfd.cross_residual` (``k2(q) * f1 - k1(q) * f2`` on the valid region, Tukey
 taper modelled; the mean per-bin NLL of the frames' noise alone was 1.03-1.16 at the truth on
 four planes without that model, its minimum up to 2 m^-1 away). The fit evaluates a grid of
 ``q`` (0.01 m^-1 steps, parabolic refinement); with ``--psf shape`` the PSF's shape ``kappa``
@@ -48,7 +48,7 @@ from benchmarks.bench_bound import (MEDIAN_ABS, depth_variances, plane_fisher, p
                                     sample_sensor)
 from benchmarks.bench_refinement import BENCH_SEED, bench_tiles
 from benchmarks.report import ROOT, comma_choices, machine, markdown_table, update_section
-from benchmarks.residual_likelihood import argmin_parabolic, cross_residual_nll
+from tdfd.dfd.cross_residual import argmin_parabolic, cross_residual_nll
 from data_synth import DefocusPairDataset
 from data_synth.params import SynthConfig
 from data_synth.psf import PSFModel

@@ -8,7 +8,7 @@ Issue 19 asks the refinement benchmark's per-tile median error for at most 1.3x 
 score with the PSF shared by the image (:mod:`benchmarks.bench_bound`, ``tile_shared``). Section
 ``plane_oracle`` showed that a whole-frame fit told the physics reaches the *per-plane* bound;
 this benchmark asks the same of the *tiles*: the cross-residual likelihood of
-:mod:`benchmarks.residual_likelihood` on each 64-px tile of the 64/32 grid (the residual
+:mod:`tdfd.dfd.cross_residual` on each 64-px tile of the 64/32 grid (the residual
 computed once over the frame and cut into tiles, each tile with the noise variances of its own
 level), every tile fitted on its own:
 
@@ -18,7 +18,7 @@ level), every tile fitted on its own:
   lowest), its other parameters (diffraction, aberrations) given; the bound's ``tile_shared``
   leaves all five PSF parameters unknown;
 - ``known_seeded``, ``shape_seeded``: the same, each tile searching only within
-  :data:`SEED_WINDOW` of the shipped model's estimate (its pooled map): a likelihood stage
+  :data:`~tdfd.dfd.seeded_fit.SEED_WINDOW` of the shipped model's estimate (its pooled map): a likelihood stage
   after the CNN, which keeps the CNN's robustness to the gross errors of weak textures.
 
 The tiles are the grid's interior (rows and columns 1-5 of 7 on 256-px frames), a kernel's
@@ -50,7 +50,8 @@ from benchmarks.bench_bound import (STRIDE, TILE, depth_variances, median_at_bou
 from benchmarks.bench_plane_oracle import CLEAN_WORLD, GROSS, Q_GRID, SHAPE_GRID, plane_frames
 from benchmarks.bench_refinement import BENCH_SEED, bench_tiles
 from benchmarks.report import ROOT, comma_choices, machine, markdown_table, update_section
-from benchmarks.residual_likelihood import parabolic_minima, tile_cross_residual_nll
+from tdfd.dfd.cross_residual import parabolic_minima, tile_cross_residual_nll
+from tdfd.dfd.seeded_fit import SEED_WINDOW, seed_mask
 from data_synth import DefocusPairDataset
 from data_synth.params import SynthConfig
 from data_synth.psf import PSFModel
@@ -60,11 +61,10 @@ from tdfd.model import DFDModel
 from tdfd.optics.thin_lens import camera_sigmas
 from training.config import EvalConfig
 
-__all__ = ["SEED_WINDOW", "interior_origins", "tile_noise", "tile_nll_stack", "seed_mask", "profile_tiles", "fit_tiles",
+__all__ = ["interior_origins", "tile_noise", "tile_nll_stack", "profile_tiles", "fit_tiles",
            "main"]
 
 MAX_KERNEL = 2 * STRIDE + 1  # a half-width of one stride keeps the interior tiles valid
-SEED_WINDOW = 0.05  # the seeded oracle searches within 5 % of the model's q
 LABELS = {"known": "oracle, PSF known", "shape": "oracle, PSF shape shared, profiled",
           "known_seeded": f"oracle, PSF known, within {100 * SEED_WINDOW:.0f} % of the model",
           "shape_seeded": f"oracle, PSF shape profiled, within {100 * SEED_WINDOW:.0f} % of the model",
@@ -93,12 +93,15 @@ def tile_nll_stack(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, psfs: lis
                    nu2: torch.Tensor, origins: list[tuple[int, int]], band: float = 0.25,
                    grid: torch.Tensor = Q_GRID, only: torch.Tensor | None = None) -> torch.Tensor:
     """``(C, Q, T)``: every candidate PSF's per-tile NLL over the grid of ``q`` (1/m)
-    (:func:`~benchmarks.residual_likelihood.tile_cross_residual_nll`); with ``only`` (a ``(Q,)``
-    mask) just those hypotheses are evaluated and the others are ``inf``."""
+    (:func:`~tdfd.dfd.cross_residual.tile_cross_residual_nll`); with ``only`` (a ``(Q,)`` mask
+    of hypotheses or a ``(Q, T)`` mask of hypothesis-tile pairs, e.g.
+    :func:`tdfd.dfd.seeded_fit.seed_mask`) just those are evaluated and the others are ``inf``."""
     if not psfs:
         raise InputError("the tile oracle needs at least one candidate PSF")
-    if only is not None and only.shape != grid.shape:
-        raise InputError(f"only must be a ({len(grid)},) mask of the grid, got {tuple(only.shape)}")
+    if only is not None and only.shape not in (grid.shape, (len(grid), len(origins))):
+        raise InputError(f"only must be a ({len(grid)},) or ({len(grid)}, {len(origins)}) mask, got {tuple(only.shape)}")
+    pairs = None if only is None or only.ndim == 1 else only
+    only = only if pairs is None else pairs.any(1)
     sig = torch.tensor([[float(s) for s in camera_sigmas(camera, 1.0 / float(q))] for q in grid],
                        dtype=torch.float64)
     idx = torch.arange(len(grid)) if only is None else only.nonzero().flatten()
@@ -106,21 +109,9 @@ def tile_nll_stack(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, psfs: lis
     for c, psf in enumerate(psfs):
         size = min(psf.kernel_size(float(sig.abs().max())), MAX_KERNEL) | 1
         ks = psf.kernels(sig[idx].reshape(-1), size=size).reshape(len(idx), 2, size, size)
-        out[c, idx] = tile_cross_residual_nll(y1, y2, ks[:, 0], ks[:, 1], nu1, nu2, origins, TILE, band)
+        out[c, idx] = tile_cross_residual_nll(y1, y2, ks[:, 0], ks[:, 1], nu1, nu2, origins, TILE, band,
+                                              mask=None if pairs is None else pairs[idx])
     return out
-
-
-def seed_mask(grid: torch.Tensor, seed_q: torch.Tensor, window: float = SEED_WINDOW) -> torch.Tensor:
-    """``(Q, T)``: the hypotheses within ``window`` (relative) of each tile's seed ``(T,)``, and
-    for a seed off the grid at least its nearest grid point."""
-    if window <= 0:
-        raise InputError(f"seed_window must be > 0, got {window}")
-    if seed_q.ndim != 1:
-        raise InputError(f"need one seed per tile, (T,), got {tuple(seed_q.shape)}")
-    dist = (grid[:, None] - seed_q[None, :]).abs()
-    near = dist <= window * seed_q[None, :]
-    near[dist.argmin(0), torch.arange(seed_q.shape[0])] = True
-    return near
 
 
 def profile_tiles(nll: torch.Tensor, grid: torch.Tensor = Q_GRID, mask: torch.Tensor | None = None
@@ -128,7 +119,7 @@ def profile_tiles(nll: torch.Tensor, grid: torch.Tensor = Q_GRID, mask: torch.Te
     """The candidate PSF shared by the image (the one whose tiles' minimum NLLs sum lowest) of
     :func:`tile_nll_stack`'s ``(C, Q, T)``, each hypothesis outside ``mask`` ``(Q, T)`` left out:
     its tiles' ``q`` ``(T,)``, its index, and the curvatures at the minima ``(T,)``
-    (:func:`~benchmarks.residual_likelihood.parabolic_minima`)."""
+    (:func:`~tdfd.dfd.cross_residual.parabolic_minima`)."""
     if mask is not None:
         nll = torch.where(mask[None], nll, torch.full_like(nll, math.inf))
     best: tuple[float, torch.Tensor, int, torch.Tensor] = (math.inf, torch.empty(0), -1, torch.empty(0))

@@ -40,7 +40,8 @@ from typing import Sequence
 import torch
 
 from tdfd.errors import InputError
-from tdfd.optics.psf import gaussian_psf_1d, kernel_size_for, power_exponential_psf, psf_kernel, sampled_psf
+from tdfd.optics.psf import (convolve_gaussian, full_conv_1d, gaussian_psf_1d, kernel_size_for,
+                             power_exponential_psf, psf_kernel, sampled_psf)
 
 __all__ = ["PSFModel", "diffraction_sigma_px", "batch_kernel_fn"]
 
@@ -140,7 +141,7 @@ class PSFModel:
                 if bool(mask.any()):
                     k[mask] = self._aberrated(sigma[mask], core, ss)
         if dpad:
-            k = _convolve_gaussian(k, self.diffraction_sigma_px, dpad)
+            k = convolve_gaussian(k, self.diffraction_sigma_px, dpad)
         return k
 
     def separable_gaussian(self, sigma: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -151,7 +152,7 @@ class PSFModel:
         k1 = gaussian_psf_1d(sigma.reshape(-1), size - 2 * dpad)
         if dpad:
             g1 = gaussian_psf_1d(torch.tensor([self.diffraction_sigma_px], dtype=k1.dtype), 2 * dpad + 1)
-            k1 = _full_conv_1d(k1, g1[0], -1)
+            k1 = full_conv_1d(k1, g1[0], -1)
             k1 = k1 / k1.sum(-1, keepdim=True)
         return k1, k1
 
@@ -176,25 +177,6 @@ class PSFModel:
             def weight(r2: torch.Tensor, sig: torch.Tensor) -> torch.Tensor:
                 return (1.0 + s_sph[:, None, None] * (r2 / (2.0 * sig * sig) - 1.0)).clamp_min(0.0)
         return sampled_psf(sigma.abs() * scale, self.beta, size, ss, radius2, weight)
-
-
-def _full_conv_1d(x: torch.Tensor, taps: torch.Tensor, dim: int) -> torch.Tensor:
-    """Full 1-D convolution of ``x`` along ``dim`` with a short symmetric kernel ``taps``
-    (a few shifted copies: no convolution primitive to build for every new shape)."""
-    n = taps.numel()
-    shape = list(x.shape)
-    shape[dim] += n - 1
-    out = x.new_zeros(shape)
-    for j, w in enumerate(taps.tolist()):
-        out.narrow(dim, j, x.shape[dim]).add_(x, alpha=w)
-    return out
-
-
-def _convolve_gaussian(k: torch.Tensor, sigma_px: float, pad: int) -> torch.Tensor:
-    """Full convolution of kernels ``(N, k, k)`` with a pixel-integrated Gaussian (grows by ``2 pad``)."""
-    g1 = gaussian_psf_1d(torch.tensor([sigma_px], dtype=k.dtype), 2 * pad + 1)
-    x = _full_conv_1d(_full_conv_1d(k, g1[0], -1), g1[0], -2)
-    return x / x.sum((-1, -2), keepdim=True)
 
 
 def batch_kernel_fn(models: Sequence[PSFModel]):

@@ -5,6 +5,7 @@ r"""``tdfd depth``: depth from a DFD pair of image files with the exported ONNX 
     tdfd depth IMAGE_F1 IMAGE_F2 [--model M] [-o depth.npy|.tiff|.png] [--white-level L]
                [--full-resolution] [--threshold C] [--centre FRACTION] [--threads T]
                [--psf-family gaussian|pillbox|unknown|CAM.json] [--tiles]
+               [--likelihood-stage SCALES.json [--black-level DN]]
 
 Reads single-channel 8- or 16-bit PNG/TIFF frames (or float32 TIFF in [0, 1]) with OpenCV
 (``IMREAD_UNCHANGED``), runs :class:`tdfd.runtime.DepthRuntime` (no torch), prints a
@@ -19,6 +20,9 @@ in-focus ECVFL power for that depth) and, with ``-o``, writes:
 * ``<stem>_color.png``: the depth at image resolution in a fixed colour scale over the
   camera's working range (turbo colour map, near = red, far = blue), low-confidence
   regions greyed, with a labelled scale bar in metres.
+
+With ``--likelihood-stage`` the map is refined tile by tile by the likelihood stage
+(:mod:`tdfd.runtime_likelihood`: torch, seconds per pair), told the sensor's ``--black-level``.
 
 Colour (3- or 4-channel) files are rejected: DFD needs the raw single-channel sensor
 frames (convert a colour image yourself if you must; gamma-encoded JPEG-like data is not
@@ -69,6 +73,12 @@ def register(subparsers: Any) -> None:
                    help="write each tile's own estimate instead of the depth map pooled along the scene's depth "
                         "structure (a model with that stage writes the pooled map by default)")
     p.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads (default 2)")
+    p.add_argument("--likelihood-stage", default=None, metavar="SCALES.json",
+                   help="refine the depth map by each tile's cross-residual likelihood fit, fused with the model "
+                        "(tdfd.dfd.likelihood_stage, torch, seconds per pair); SCALES.json holds its sigma factors "
+                        "(the shipped model's: models/reference.likelihood.json)")
+    p.add_argument("--black-level", type=float, default=0.0,
+                   help="the sensor's black level in raw values (default 0), for --likelihood-stage")
     p.add_argument("--psf-family", default="exported", metavar="FAMILY",
                    help="the lens's PSF family the model's CNN is told: gaussian, pillbox, unknown, a camera JSON "
                         "from 'tdfd calibrate' (its measured psf_family), or exported (default: the family the ONNX "
@@ -265,6 +275,15 @@ def run(args: argparse.Namespace) -> int:
     model = Path(args.model) if args.model else default_model_path()
     rt = DepthRuntime(model, threads=args.threads, psf_family=psf_family_option(args.psf_family))
     res = rt(f1, f2, white_level=args.white_level, pooled=not args.tiles)
+    if args.likelihood_stage:
+        if args.tiles:
+            raise InputError("--likelihood-stage refines the depth map; it cannot be combined with --tiles")
+        from .runtime_likelihood import refine_result, stage_for_runtime  # torch: only when asked for
+
+        white = args.white_level if args.white_level is not None else (
+            float(np.iinfo(f1.dtype).max) if np.issubdtype(f1.dtype, np.integer) else 1.0)
+        stage = stage_for_runtime(rt, args.likelihood_stage, args.black_level / white)
+        res = refine_result(rt, stage, f1, f2, res, args.white_level)
     h, w = res.depth.shape
     valid = res.valid(args.threshold)
     centre = res.centre_depth(args.centre, args.threshold)
@@ -290,7 +309,8 @@ def run(args: argparse.Namespace) -> int:
         path = write_depth(args.output, depth, conf, args.threshold)
         picture = colorize_depth(*full.depth_map, rt.camera.depth_range_m, args.threshold)
         pic = _write(path.with_name(path.stem + "_color.png"), lambda target: cv2.imwrite(str(target), picture))
-        kind = "pooled along the depth structure" if out.depth_pooled is not None else "each tile's own estimate"
+        kind = ("refined by the likelihood stage" if args.likelihood_stage else "pooled along the depth structure"
+                if out.depth_pooled is not None else "each tile's own estimate")
         print(f"wrote {path} ({'x'.join(map(str, depth.shape))} "
               f"{'uint16 mm' if path.suffix.lower() == '.png' else 'float32 m'}; {kind}) and {pic}")
     return 0

@@ -1,6 +1,6 @@
-"""The likelihood stage's pieces (benchmarks/bench_likelihood_stage.py): the seeded fit's minimum
-and curvature sigma, the model's sigma from its confidence, the cross-fitted scale, the
-inverse-variance fusion and the paired bootstrap."""
+"""The likelihood-stage benchmark's own pieces (benchmarks/bench_likelihood_stage.py): the oracle's
+seeded fit's minimum and curvature sigma, and the paired bootstrap (the product stage's pieces:
+tests/test_likelihood_stage.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from benchmarks.bench_likelihood_stage import fuse, model_sigma, paired_bootstrap, seeded_fit, sigma_factor
+from benchmarks.bench_likelihood_stage import paired_bootstrap, seeded_fit
 from tdfd.errors import InputError
 
 GRID = torch.arange(0.8, 3.6001, 0.01, dtype=torch.float64)
@@ -45,36 +45,36 @@ def test_the_shared_candidate_is_the_one_whose_tiles_fit_best():
     assert j == 1
 
 
-def test_model_sigma_inverts_the_confidence():
-    b0 = 0.01
-    b = torch.tensor([0.005, 0.01, 0.04], dtype=torch.float64)
-    conf = 1.0 / (1.0 + (b / b0) ** 2)
-    torch.testing.assert_close(model_sigma(conf, b0), math.sqrt(2.0) * b)
-    for bad in (0.0, 1.5, float("nan")):
-        with pytest.raises(InputError):
-            model_sigma(torch.tensor([bad]), b0)
-
-
-def test_sigma_factor_makes_the_median_ratio_a_normals():
-    g = torch.Generator().manual_seed(0)
-    e = torch.randn(20000, generator=g, dtype=torch.float64) * 0.02
-    assert abs(sigma_factor(e, torch.full_like(e, 0.01)) - 2.0) < 0.05
-    assert abs(sigma_factor(e, torch.full_like(e, 0.02)) - 1.0) < 0.03
-    with pytest.raises(InputError):
-        sigma_factor(e, torch.full_like(e, math.inf))
-
-
-def test_fusion_weights_by_inverse_variance():
-    q = fuse(torch.tensor([1.0, 1.0, 1.0]), torch.tensor([1.0, 2.0, math.inf]),
-             torch.tensor([2.0, 2.0, 2.0]), torch.tensor([1.0, 1.0, 1.0]))
-    torch.testing.assert_close(q, torch.tensor([1.5, 1.8, 2.0]))
-    with pytest.raises(InputError):
-        fuse(torch.tensor([1.0]), torch.tensor([math.inf]), torch.tensor([2.0]), torch.tensor([math.inf]))
-
-
 def test_paired_bootstrap_is_seeded_and_centred_on_the_difference():
     a = [[0.01, -0.02, 0.03]] * 20
     b = [[0.02, -0.04, 0.06]] * 20
     mean, lo, hi = paired_bootstrap(a, b, resamples=200, seed=3)
     assert abs(mean + 0.02) < 1e-12 and abs(lo + 0.02) < 1e-12 and abs(hi + 0.02) < 1e-12
     assert paired_bootstrap(a, b, 50, 1) == paired_bootstrap(a, b, 50, 1)
+
+
+def test_product_scores_are_relative_depth_errors_per_plane():
+    from benchmarks.bench_likelihood_stage import score_product
+
+    rows = [{"true_q": [2.0, 2.0], "model_q": [2.0, 1.6], "product_fit_q": [2.5, 2.0], "product_q": [2.0, 2.0]}]
+    sc = score_product(rows)
+    assert sc["model"] == [[0.0, pytest.approx(0.25)]]
+    assert sc["seeded"] == [[pytest.approx(-0.2), 0.0]] and sc["fused"] == [[0.0, 0.0]]
+
+
+def test_the_structure_table_scores_edges_apart_and_bootstraps_scenes():
+    from benchmarks.bench_likelihood_stage import structure_table
+
+    n = 40
+    true = torch.full((n,), 0.5, dtype=torch.float64)
+    model = true * 1.02
+    fused = true * torch.where(torch.arange(n) % 2 == 0, 1.01, 1.03).to(torch.float64)
+    rows = {"slanted": {"true": true, "model": model, "model_conf": torch.full((n,), 0.3, dtype=torch.float64),
+                        "fused": fused, "fused_conf": torch.full((n,), 0.6, dtype=torch.float64),
+                        "fit": fused.clone(), "fitted": torch.arange(n) >= 10, "edge": torch.arange(n) < 10,
+                        "scene": torch.arange(n) // 10}}
+    table = structure_table(rows, reps=50)
+    away, every = table
+    assert away[:3] == ["slanted", "away from edges", 30] and every[2] == 40
+    assert away[3] == "2.00 %" and away[4] in ("1.00 %", "2.00 %", "3.00 %")
+    assert away[7] == "0 % / 100 %" and away[8] == "- / " + away[4]

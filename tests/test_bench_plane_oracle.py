@@ -1,4 +1,4 @@
-"""The cross-residual likelihood (benchmarks/residual_likelihood.py) and the oracles built on it: the
+"""The cross-residual likelihood (tdfd/dfd/cross_residual.py) and the oracles built on it: the
 residual vanishes at the true depth, the taper's model leaves pure noise indifferent to the depth (whole
 frame and per tile), a tile covering the valid region is the whole-frame likelihood, bad inputs are refused."""
 
@@ -9,7 +9,7 @@ import torch
 
 from benchmarks.bench_bound import psf_model
 from benchmarks.bench_plane_oracle import CLEAN_WORLD, fit_plane, plane_frames
-from benchmarks.residual_likelihood import cross_residual_nll, tile_cross_residual_nll, tukey_window, valid_residual
+from tdfd.dfd.cross_residual import cross_residual_nll, tile_cross_residual_nll, tukey_window, valid_residual
 from data_synth import DefocusPairDataset
 from data_synth.psf import PSFModel
 from tdfd import Camera

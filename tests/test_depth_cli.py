@@ -246,3 +246,35 @@ def test_psf_family_errors_are_one_line(synth_pngs, model_path, shipped_onnx, ca
     _one_line_error(rc, err, "--psf-family must be one of")
     rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--psf-family", "missing.json")
     _one_line_error(rc, err, "missing.json")
+
+
+def test_likelihood_stage_refines_the_map_and_keeps_problems(plane_pairs, shipped_onnx, tmp_path, capsys):
+    """``--likelihood-stage``: the map written is the stage's (the interior tiles change, the ring
+    is the model's), the plane's depth stays right, and a pair of identical frames keeps its
+    confidence 0; bad combinations are one-line errors."""
+    scales = ROOT / "models" / "reference.likelihood.json"
+    f1, f2, truth = plane_pairs[0]
+    a, b = _write_pair(tmp_path, f1, f2, "stage")
+    base, staged = tmp_path / "base.npy", tmp_path / "staged.npy"
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--threshold", "0", "-o", base)
+    assert rc == 0, err
+    rc, stdout, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--threshold", "0",
+                           "--likelihood-stage", scales, "-o", staged)
+    assert rc == 0, err
+    assert "refined by the likelihood stage" in stdout
+    d0, d1 = np.load(base), np.load(staged)
+    assert d0.shape == d1.shape == (5, 7)
+    assert np.array_equal(d0[0], d1[0]) and np.array_equal(d0[:, 0], d1[:, 0])  # the ring: the model's
+    assert not np.array_equal(d0[1:-1, 1:-1], d1[1:-1, 1:-1])
+    assert abs(float(np.median(d1[1:-1, 1:-1])) - truth) / truth < 0.03
+    same, _ = _write_pair(tmp_path, f1, f1, "same_stage")
+    rc, stdout, err = _run(capsys, same, same, "--model", shipped_onnx, "--white-level", "4095",
+                           "--likelihood-stage", scales)
+    assert rc == 0 and "valid: 0.0%" in stdout, stdout
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--likelihood-stage", scales, "--tiles")
+    _one_line_error(rc, err, "--tiles")
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--likelihood-stage", tmp_path / "none.json")
+    _one_line_error(rc, err, "likelihood scales")
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--likelihood-stage", scales,
+                      "--black-level", "5000")
+    _one_line_error(rc, err, "black level")

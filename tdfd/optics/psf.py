@@ -50,6 +50,8 @@ __all__ = [
     "gaussian_otf",
     "pillbox_otf",
     "psf_second_moment",
+    "full_conv_1d",
+    "convolve_gaussian",
 ]
 
 #: A PSF shape: "gaussian", "pillbox", or a power-exponential exponent ``beta`` >= 1.
@@ -256,3 +258,29 @@ def psf_second_moment(kernel: torch.Tensor) -> torch.Tensor:
     size = kernel.shape[-1]
     x = _grid(size, kernel)
     return (kernel * (x[None, :] ** 2)).sum((-1, -2)) / kernel.sum((-1, -2))
+
+
+def full_conv_1d(x: torch.Tensor, taps: torch.Tensor, dim: int) -> torch.Tensor:
+    """Full 1-D convolution of ``x`` along ``dim`` with a short symmetric kernel ``taps``
+    (a few shifted copies: no convolution primitive to build for every new shape)."""
+    n = taps.numel()
+    shape = list(x.shape)
+    shape[dim] += n - 1
+    out = x.new_zeros(shape)
+    for j, w in enumerate(taps.tolist()):
+        out.narrow(dim, j, x.shape[dim]).add_(x, alpha=w)
+    return out
+
+
+def convolve_gaussian(k: torch.Tensor, sigma_px: float, pad: int) -> torch.Tensor:
+    """Full convolution of kernels ``(N, k, k)`` with a pixel-integrated Gaussian of RMS radius
+    ``sigma_px`` (e.g. the diffraction blur), renormalised to unit sum; the kernels grow by ``2 pad``.
+
+    Example:
+        >>> k = convolve_gaussian(torch.ones(1, 3, 3) / 9, 0.5, 2)
+        >>> tuple(k.shape), round(float(k.sum()), 6)
+        ((1, 7, 7), 1.0)
+    """
+    g1 = gaussian_psf_1d(torch.tensor([sigma_px], dtype=k.dtype), 2 * pad + 1)
+    x = full_conv_1d(full_conv_1d(k, g1[0], -1), g1[0], -2)
+    return x / x.sum((-1, -2), keepdim=True)

@@ -1,7 +1,7 @@
 r"""The texture-free cross-residual likelihood of a defocus pair, over a whole frame or per tile.
 
-The estimator behind the oracle benchmarks (:mod:`benchmarks.bench_plane_oracle`,
-:mod:`benchmarks.bench_tile_oracle`). Both frames are the same sharp texture ``s`` blurred by
+The estimator behind the likelihood stage (:mod:`tdfd.dfd.likelihood_stage`) and the oracle
+benchmarks (``benchmarks/bench_plane_oracle.py``, ``benchmarks/bench_tile_oracle.py``). Both frames are the same sharp texture ``s`` blurred by
 their own PSFs, ``f_i = k_i * s + n_i``, so the *cross residual*
 
 .. math::
@@ -38,10 +38,10 @@ from typing import Sequence
 
 import torch
 
-from tdfd.errors import InputError, ShapeError
+from ..errors import InputError, ShapeError
 
 __all__ = ["TAPER_FRACTION", "tukey_window", "valid_residual", "cross_residual_nll", "tile_cross_residual_nll",
-           "parabolic_minima", "argmin_parabolic"]
+           "parabolic_minima", "argmin_parabolic", "independent_bins"]
 
 TAPER_FRACTION = 0.1
 
@@ -143,6 +143,22 @@ def _band_weight(mh: int, mw: int, band: float) -> torch.Tensor:
     return weight * ((f > 1.5 / min(mh, mw)) & (f <= band)).to(torch.float64)
 
 
+def independent_bins(tile: int, band: float = 0.25) -> float:
+    """The number of independent spectral bins behind one tile's mean NLL (half the band's
+    half-plane count: a real residual's bin and its mirror are one): the NLL's sum is this
+    times its mean, and ``1 / (bins * d2 NLL / dq2)`` the variance of ``q`` at its minimum.
+
+    Example:
+        >>> independent_bins(64)
+        394.0
+    """
+    if tile < 16:
+        raise ShapeError(f"tiles must be at least 16 px, got {tile}")
+    if not (0.0 < band <= 0.5):
+        raise InputError(f"band must lie in (0, 0.5] cycles/px, got {band}")
+    return float(_band_weight(tile, tile, band).sum()) / 2.0
+
+
 def cross_residual_nll(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor, k2: torch.Tensor, nu1: float,
                        nu2: float, band: float = 0.25, model_taper: bool = True) -> torch.Tensor:
     """Mean per-bin negative log-likelihood of each hypothesis over the whole valid region.
@@ -178,8 +194,13 @@ def cross_residual_nll(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor, k2:
 
 def tile_cross_residual_nll(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor, k2: torch.Tensor,
                             nu1: torch.Tensor, nu2: torch.Tensor, origins: Sequence[tuple[int, int]], tile: int,
-                            band: float = 0.25, fraction: float = TAPER_FRACTION, chunk: int = 32) -> torch.Tensor:
+                            band: float = 0.25, fraction: float = TAPER_FRACTION, chunk: int = 256,
+                            mask: torch.Tensor | None = None) -> torch.Tensor:
     """:func:`cross_residual_nll` of each tile of the frame's residual.
+
+    Each tile's residual is the valid part of the circular convolutions of its own region, the
+    tile and a kernel's half-width around it (the same values as cutting the whole frame's
+    residual, :func:`valid_residual`, without computing it where no tile needs it).
 
     Args:
         y1, y2, k1, k2, band: as for :func:`cross_residual_nll`.
@@ -188,47 +209,62 @@ def tile_cross_residual_nll(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor
             must lie a kernel's half-width inside the frame (where the residual is valid).
         tile: the tiles' side in px (at least 16).
         fraction: the tiles' Tukey taper (see :func:`tukey_window`).
-        chunk: hypotheses per pass (memory).
+        chunk: (hypothesis, tile) pairs per pass (memory).
+        mask: ``(Q, T)`` bool, the pairs to evaluate (``None``: all); the others are ``inf``.
 
     Returns:
         ``(Q, T)`` float64; about 1 at each tile's true hypothesis.
 
     Raises:
         ShapeError: bad frames, kernels, a tile under 16 px or one outside the valid region.
-        InputError: a bad band, taper, chunk, or noise variances not ``(T,)``, finite and > 0.
+        InputError: a bad band, taper, chunk, mask, or noise variances not ``(T,)``, finite and > 0.
     """
     _check(y1, y2, k1, k2, band)
     nu1, nu2 = (torch.as_tensor(v, dtype=torch.float64) for v in (nu1, nu2))
-    if nu1.shape != (len(origins),) or nu2.shape != (len(origins),):
-        raise InputError(f"need one noise variance per tile: {len(origins)} tiles, got {tuple(nu1.shape)} and "
+    n_t = len(origins)
+    if nu1.shape != (n_t,) or nu2.shape != (n_t,):
+        raise InputError(f"need one noise variance per tile: {n_t} tiles, got {tuple(nu1.shape)} and "
                          f"{tuple(nu2.shape)}")
     _check_noise(nu1, nu2)
     if tile < 16:
         raise ShapeError(f"tiles must be at least 16 px, got {tile}")
     if chunk < 1:
         raise InputError(f"chunk must be >= 1, got {chunk}")
+    if mask is not None and (mask.shape != (k1.shape[0], n_t) or mask.dtype != torch.bool):
+        raise InputError(f"mask must be a ({k1.shape[0]}, {n_t}) bool tensor, got {tuple(mask.shape)} {mask.dtype}")
     h, w = y1.shape
     half = k1.shape[-1] // 2
     for r, c in origins:
         if r < half or c < half or r + tile > h - half or c + tile > w - half:
             raise ShapeError(f"tile at ({r}, {c}) of {tile} px leaves the valid residual of a {h}x{w} frame and "
                              f"{2 * half + 1}-px kernels")
+    out = torch.full((k1.shape[0], n_t), math.inf, dtype=torch.float64)
+    pairs = (torch.ones_like(out, dtype=torch.bool) if mask is None else mask).nonzero()  # (P, 2): hypothesis, tile
+    if not n_t or not len(pairs):
+        return out
     taper = tukey_window(tile, tile, fraction)
     taper = taper / float((taper ** 2).mean().sqrt())
     weight = _band_weight(tile, tile, band)
-    rows = torch.tensor([r - half for r, _ in origins])[:, None] + torch.arange(tile)[None]  # (T, tile)
-    cols = torch.tensor([c - half for _, c in origins])[:, None] + torch.arange(tile)[None]
-    out = []
-    for start in range(0, k1.shape[0], chunk):
-        ka, kb = k1[start: start + chunk], k2[start: start + chunk]
-        v = valid_residual(y1, y2, ka, kb)  # (q, mh, mw)
-        patches = v[:, rows[:, :, None], cols[:, None, :]]  # (q, T, tile, tile)
-        R = torch.fft.rfft2(patches * taper)
-        a, b = _tapered_periodograms(ka, kb, taper, True)  # (q, tile, tile // 2 + 1)
-        p = nu1[None, :, None, None] * a[:, None] + nu2[None, :, None, None] * b[:, None]
+    m = tile + 2 * half  # each tile's region
+    rows = torch.tensor([r - half for r, _ in origins])[:, None] + torch.arange(m)[None]  # (T, m)
+    cols = torch.tensor([c - half for _, c in origins])[:, None] + torch.arange(m)[None]
+    y1, y2, k1, k2 = (t.to(torch.float64) for t in (y1, y2, k1, k2))
+    F1 = torch.fft.rfft2(y1[rows[:, :, None], cols[:, None, :]])  # (T, m, m // 2 + 1)
+    F2 = torch.fft.rfft2(y2[rows[:, :, None], cols[:, None, :]])
+    used = pairs[:, 0].unique()
+    slot = torch.full((k1.shape[0],), -1, dtype=torch.long)
+    slot[used] = torch.arange(len(used))
+    K1, K2 = _kernel_spectra(k1[used], (m, m)), _kernel_spectra(k2[used], (m, m))
+    a, b = _tapered_periodograms(k1[used], k2[used], taper, True)  # (Q', tile, tile // 2 + 1)
+    for start in range(0, len(pairs), chunk):
+        qi, ti = pairs[start: start + chunk, 0], pairs[start: start + chunk, 1]
+        j = slot[qi]
+        r = torch.fft.irfft2(K2[j] * F1[ti] - K1[j] * F2[ti], s=(m, m))[:, half: half + tile, half: half + tile]
+        R = torch.fft.rfft2(r * taper)
+        p = nu1[ti, None, None] * a[j] + nu2[ti, None, None] * b[j]
         terms = R.abs() ** 2 / (tile * tile) / p.clamp_min(1e-300)
-        out.append((terms * weight).sum((-1, -2)) / weight.sum())
-    return torch.cat(out)
+        out[qi, ti] = (terms * weight).sum((-1, -2)) / weight.sum()
+    return out
 
 
 def parabolic_minima(nll: torch.Tensor, grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -1,0 +1,202 @@
+r"""Two depth estimates fused by inverse variance, each variance's scale fitted on training data.
+
+The refinement CNN states its uncertainty as a confidence ``conf = 1 / (1 + (b / b0)^2)``
+(:mod:`tdfd.model.combined`: ``b`` the Laplace scale of the relative error, ``b0`` the model's
+``confidence_scale``), so its standard deviation is ``sqrt(2) b = sqrt(2) b0 sqrt(1/conf - 1)``;
+the likelihood fit (:mod:`tdfd.dfd.seeded_fit`) states a standard deviation from its curvature.
+Neither is exact (the fit's tapered bins are correlated, the CNN's scale is conservative on some
+scenes), so each is multiplied by a factor that makes the median of ``|error| / sigma`` a normal
+variable's, 0.674, on held-out training scenes (:func:`sigma_factor`; :class:`LikelihoodScales`
+stores them). The fused inverse depth is the inverse-variance mean.
+
+Example:
+    >>> import torch
+    >>> fuse(torch.tensor([1.0, 1.0]), torch.tensor([1.0, float("inf")]),
+    ...      torch.tensor([2.0, 2.0]), torch.tensor([1.0, 1.0]))[0].tolist()
+    [1.5, 2.0]
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..errors import InputError, ModelError
+
+__all__ = ["MEDIAN_ABS_NORMAL", "SCALES_FORMAT", "model_sigma", "confidence_from_sigma", "sigma_factor", "fuse",
+           "LikelihoodScales", "tile_slope"]
+
+#: The median of ``|x|`` for a standard normal ``x``.
+MEDIAN_ABS_NORMAL = 0.6744897501960817
+#: The ``format`` of a scales file.
+SCALES_FORMAT = "tdfd.likelihood_scales/1"
+_TINY = 1e-150  # squares stay above float64's smallest normal
+
+
+def model_sigma(confidence: torch.Tensor, confidence_scale: float) -> torch.Tensor:
+    """The model's standard deviation of the relative error, ``sqrt(2) b0 sqrt(1/conf - 1)``
+    (``inf`` where the confidence is 0).
+
+    Example:
+        >>> round(float(model_sigma(torch.tensor([0.5]), 0.01)[0]), 5)
+        0.01414
+
+    Raises:
+        InputError: a confidence outside [0, 1] or a scale not > 0.
+    """
+    if not confidence_scale > 0:
+        raise InputError(f"confidence_scale must be > 0, got {confidence_scale}")
+    if not bool(((confidence >= 0) & (confidence <= 1)).all()):
+        raise InputError("confidences must lie in [0, 1]")
+    c = confidence.to(torch.float64)
+    safe = torch.where(c > 0, c, torch.ones_like(c))
+    return torch.where(c > 0, math.sqrt(2.0) * confidence_scale * (1.0 / safe - 1.0).clamp_min(0).sqrt(),
+                       torch.full_like(c, math.inf))
+
+
+def confidence_from_sigma(sigma: torch.Tensor, confidence_scale: float) -> torch.Tensor:
+    """The inverse of :func:`model_sigma`: ``1 / (1 + sigma^2 / (2 b0^2))`` (0 for ``inf``).
+
+    Example:
+        >>> round(float(confidence_from_sigma(model_sigma(torch.tensor([0.3]), 0.01), 0.01)[0]), 6)
+        0.3
+    """
+    if not confidence_scale > 0:
+        raise InputError(f"confidence_scale must be > 0, got {confidence_scale}")
+    return 1.0 / (1.0 + sigma.to(torch.float64) ** 2 / (2.0 * confidence_scale ** 2))
+
+
+def sigma_factor(errors: torch.Tensor, sigmas: torch.Tensor) -> float:
+    """The factor on ``sigmas`` that makes the median of ``|errors| / sigma`` 0.674 (a normal's),
+    over the finite, positive sigmas.
+
+    Example:
+        >>> round(sigma_factor(torch.tensor([-2.0, 1.0, 4.0]), torch.tensor([1.0, 1.0, 2.0])), 4)
+        2.9652
+
+    Raises:
+        InputError: no finite positive sigma.
+    """
+    ok = torch.isfinite(sigmas) & (sigmas > 0) & torch.isfinite(errors)
+    if not bool(ok.any()):
+        raise InputError("no finite positive sigma to calibrate")
+    return float((errors[ok].abs() / sigmas[ok]).median()) / MEDIAN_ABS_NORMAL
+
+
+def fuse(q_a: torch.Tensor, sigma_a: torch.Tensor, q_b: torch.Tensor, sigma_b: torch.Tensor
+         ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inverse-variance mean of two estimates and its standard deviation; an infinite sigma gives
+    its estimate no weight (a zero sigma, all of it).
+
+    Raises:
+        InputError: shapes that differ, or a pair with no finite sigma.
+    """
+    if q_a.shape != sigma_a.shape or q_a.shape != q_b.shape or q_a.shape != sigma_b.shape:
+        raise InputError(f"estimates and sigmas must share one shape, got {tuple(q_a.shape)}, {tuple(sigma_a.shape)}, "
+                         f"{tuple(q_b.shape)}, {tuple(sigma_b.shape)}")
+    wa = torch.where(torch.isfinite(sigma_a), 1.0 / sigma_a.clamp_min(_TINY) ** 2, torch.zeros_like(sigma_a))
+    wb = torch.where(torch.isfinite(sigma_b), 1.0 / sigma_b.clamp_min(_TINY) ** 2, torch.zeros_like(sigma_b))
+    if not bool((wa + wb > 0).all()):
+        raise InputError("every pair needs at least one finite sigma")
+    return (wa * q_a + wb * q_b) / (wa + wb), 1.0 / (wa + wb).sqrt()
+
+
+@dataclass(frozen=True)
+class LikelihoodScales:
+    """The factors on the two sigmas a fusion uses (:func:`sigma_factor` on held-out training
+    scenes; 1 each: the raw sigmas), one per band of the tile's slope.
+
+    The likelihood fit takes each tile for a fronto-parallel plane, so its curvature sigma
+    understates the error where the depth changes across the tile; the model's map says where:
+    a tile's *slope* is the largest relative difference of the map's inverse depth to its eight
+    neighbours (:func:`tile_slope`). ``slope_edges`` split the tiles into bands, each with its
+    own pair of factors.
+
+    Args:
+        fit: factors on the likelihood fit's sigma, one per band (a float: one band).
+        model: factors on the model's sigma from its confidence, one per band.
+        slope_edges: the increasing inner edges of the bands (``len(fit) - 1`` of them).
+        provenance: how they were fitted (command, data, counts); free-form, saved with them.
+
+    Example:
+        >>> s = LikelihoodScales(fit=(1.5, 3.0), model=(0.7, 0.6), slope_edges=(0.02,))
+        >>> [t.tolist() for t in s.factors(torch.tensor([0.0, 0.05]))]
+        [[1.5, 3.0], [0.7, 0.6]]
+    """
+
+    fit: float | tuple[float, ...] = 1.0
+    model: float | tuple[float, ...] = 1.0
+    slope_edges: tuple[float, ...] = ()
+    provenance: dict[str, Any] = field(default_factory=dict, compare=False)
+
+    def __post_init__(self) -> None:
+        bands = len(self.slope_edges) + 1
+        for name in ("fit", "model"):
+            v = getattr(self, name)
+            vals = tuple(v) if isinstance(v, (list, tuple)) else (v,)
+            if len(vals) != bands or not all(isinstance(x, (int, float)) and math.isfinite(x) and x > 0 for x in vals):
+                raise InputError(f"the {name} sigma factors must be {bands} finite values > 0 (one per slope band), "
+                                 f"got {v!r}")
+            object.__setattr__(self, name, tuple(float(x) for x in vals))
+        edges = tuple(float(e) for e in self.slope_edges)
+        if any(not (math.isfinite(e) and e > 0) for e in edges) or any(b <= a for a, b in zip(edges, edges[1:])):
+            raise InputError(f"slope_edges must be finite, > 0 and increasing, got {self.slope_edges!r}")
+        object.__setattr__(self, "slope_edges", edges)
+
+    def band(self, slope: torch.Tensor) -> torch.Tensor:
+        """Each tile's band index for its slope (``(T,)``, long)."""
+        return torch.bucketize(slope.to(torch.float64), torch.tensor(self.slope_edges, dtype=torch.float64),
+                               right=True)
+
+    def factors(self, slope: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(fit, model)`` factors ``(T,)`` float64 of tiles of these slopes."""
+        k = self.band(slope)
+        return (torch.tensor(self.fit, dtype=torch.float64)[k], torch.tensor(self.model, dtype=torch.float64)[k])
+
+    def save(self, path: str | Path) -> None:
+        """Write them as JSON (``format``: :data:`SCALES_FORMAT`)."""
+        Path(path).write_text(json.dumps({"format": SCALES_FORMAT, **asdict(self)}, indent=2) + "\n")
+
+    @classmethod
+    def load(cls, path: str | Path) -> "LikelihoodScales":
+        """Read a file :meth:`save` wrote.
+
+        Raises:
+            ModelError: a file that is not JSON, of another format, or with bad factors.
+        """
+        try:
+            data = json.loads(Path(path).read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ModelError(f"cannot read likelihood scales from {path}: {e}") from e
+        if not isinstance(data, dict) or data.get("format") != SCALES_FORMAT:
+            raise ModelError(f"{path} is not a {SCALES_FORMAT} file")
+        try:
+            return cls(fit=data["fit"], model=data["model"], slope_edges=tuple(data.get("slope_edges") or ()),
+                       provenance=dict(data.get("provenance") or {}))
+        except (KeyError, TypeError, InputError) as e:
+            raise ModelError(f"{path}: bad likelihood scales ({e})") from e
+
+
+def tile_slope(q_map: torch.Tensor) -> torch.Tensor:
+    """Each tile's slope: the largest ``|q_n - q| / q`` over its (up to eight) neighbours ``n`` in
+    the map ``(h, w)`` of inverse depths.
+
+    Example:
+        >>> tile_slope(torch.tensor([[1.0, 1.0], [1.0, 1.1]])).tolist()
+        [[0.1, 0.1], [0.1, 0.1]]
+    """
+    if q_map.ndim != 2:
+        raise InputError(f"need an (h, w) map, got {tuple(q_map.shape)}")
+    q = q_map.to(torch.float64)
+    pad = torch.nn.functional.pad(q[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
+    h, w = q.shape
+    out = torch.zeros_like(q)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            out = torch.maximum(out, (pad[1 + dy: 1 + dy + h, 1 + dx: 1 + dx + w] - q).abs() / q)
+    return out

@@ -1,0 +1,230 @@
+r"""A likelihood stage after the refinement CNN: each tile's cross-residual fit, seeded by the model's
+map and fused with it by inverse variance.
+
+The refinement CNN (:class:`tdfd.model.DFDModel`) is robust (a weak texture rarely gives it a
+gross error) but its errors are correlated over a surface; the cross-residual likelihood
+(:mod:`tdfd.dfd.cross_residual`: ``k2(q) * f1 - k1(q) * f2`` is texture-free at the true ``q``)
+comes close to the information limit where the texture is informative. Per tile of the model's
+grid the stage:
+
+1. matches frame 2's mean to frame 1's (blur keeps the mean; a gain or exposure difference is
+   what is left) after removing the black level;
+2. fits ``q = 1/d`` within ``seed_window`` of the model's estimate, the PSF shared by the image
+   and profiled over the hypotheses (:mod:`tdfd.dfd.psf_hypotheses`: the measured family's
+   shape, or every shape, each without and with the diffraction of the working f-number), the
+   noise not told (:func:`tdfd.dfd.seeded_fit.seeded_tile_fit`);
+3. fuses the fit with the model by inverse variance, each sigma times its factor for the tile's
+   slope in the model's map (the fit assumes a fronto-parallel tile), fitted on training scenes (:mod:`tdfd.dfd.inverse_variance`, ``training/fit_likelihood_stage.py``), and
+   states the fused sigma as a confidence on the model's scale: a tile the fit adds nothing to
+   keeps the model's confidence.
+
+Tiles closer to the frame's edge than a kernel's half-width (where the residual is not valid)
+keep the model's estimate and confidence; so do tiles whose fit has no minimum inside its
+window. The stage models neither breathing nor misregistration nor vignetting: register the
+frames first where they matter (:mod:`tdfd.registration`). Its cost grows with the hypotheses
+(12 without a measured family, 2 with one) and the spread of depths in the frame: see
+``docs/BENCHMARKS.md``, section ``likelihood_stage``.
+
+Example:
+    >>> import torch
+    >>> from tdfd import Camera
+    >>> stage = LikelihoodStage(Camera.preset("reference"), tile=64, stride=32, confidence_scale=0.01,
+    ...                         family="gaussian")
+    >>> g = torch.Generator().manual_seed(0)
+    >>> i1, i2 = torch.rand(1, 1, 160, 160, generator=g), torch.rand(1, 1, 160, 160, generator=g)
+    >>> depth, conf = torch.full((1, 1, 4, 4), 0.5), torch.full((1, 1, 4, 4), 0.5)
+    >>> out = stage(i1, i2, depth, conf)
+    >>> out.fitted[0, 0].int().tolist()
+    [[0, 0, 0, 0], [0, 1, 1, 0], [0, 1, 1, 0], [0, 0, 0, 0]]
+    >>> bool((out.depth[out.fitted == 0] == 0.5).all())
+    True
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from ..camera import Camera
+from ..errors import InputError, NonFiniteError, ShapeError
+from ..grid import grid_shape
+from .inverse_variance import LikelihoodScales, confidence_from_sigma, fuse, model_sigma, tile_slope
+from .psf_hypotheses import WAVELENGTH_M, PsfHypothesis, psf_hypotheses
+from .seeded_fit import PROFILE_TILES, Q_STEP, SEED_WINDOW, inverse_depth_grid, kernel_side, seeded_tile_fit
+
+__all__ = ["LikelihoodStageResult", "valid_tiles", "likelihood_stage", "LikelihoodStage"]
+
+
+@dataclass
+class LikelihoodStageResult:
+    """What :func:`likelihood_stage` returns, per tile ``(B, 1, h, w)``.
+
+    Attributes:
+        depth: the fused object distance in metres (the model's where not ``fitted``).
+        confidence: the fused confidence, on the model's scale, in [0, 1].
+        depth_fit: the likelihood fit's own distance (``nan`` where not fitted).
+        sigma_fit: the fit's relative standard deviation after its factor (``inf`` where it has
+            no weight).
+        fitted: where the fit was made (bool).
+        hypotheses: per image, the PSF it shares.
+        slope: each fitted tile's slope in the model's map
+            (:func:`~tdfd.dfd.inverse_variance.tile_slope`; 0 where not fitted), which picks its
+            sigma factors.
+    """
+
+    depth: torch.Tensor
+    confidence: torch.Tensor
+    depth_fit: torch.Tensor
+    sigma_fit: torch.Tensor
+    fitted: torch.Tensor
+    hypotheses: list[PsfHypothesis]
+    slope: torch.Tensor
+
+
+def valid_tiles(height: int, width: int, tile: int, stride: int, half: int) -> torch.Tensor:
+    """``(h, w)`` bool: the grid's tiles at least ``half`` px inside a ``height`` x ``width`` frame.
+
+    Example:
+        >>> valid_tiles(160, 192, 64, 32, 32).int().tolist()
+        [[0, 0, 0, 0, 0], [0, 1, 1, 1, 0], [0, 1, 1, 1, 0], [0, 0, 0, 0, 0]]
+    """
+    h, w = grid_shape(height, width, tile, stride)
+    rows = torch.arange(h) * stride
+    cols = torch.arange(w) * stride
+    ok_r = (rows >= half) & (rows + tile <= height - half)
+    ok_c = (cols >= half) & (cols + tile <= width - half)
+    return ok_r[:, None] & ok_c[None, :]
+
+
+def _check(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torch.Tensor, confidence: torch.Tensor, tile: int,
+           stride: int) -> None:
+    if image_f1.ndim != 4 or image_f1.shape[1] != 1 or image_f1.shape != image_f2.shape:
+        raise ShapeError(f"frames must be two (B, 1, H, W) of one shape, got {tuple(image_f1.shape)} and "
+                         f"{tuple(image_f2.shape)}")
+    b, _, height, width = image_f1.shape
+    h, w = grid_shape(height, width, tile, stride)
+    for name, t in (("depth", depth), ("confidence", confidence)):
+        if t.shape != (b, 1, h, w):
+            raise ShapeError(f"{name} must be the tile grid (B, 1, h, w) = {(b, 1, h, w)}, got {tuple(t.shape)}")
+    for name, t in (("image_f1", image_f1), ("image_f2", image_f2), ("depth", depth), ("confidence", confidence)):
+        if not bool(torch.isfinite(t).all()):
+            raise NonFiniteError(f"{name} has non-finite values")
+    if not bool((depth > 0).all()):
+        raise InputError("depths must be > 0")
+
+
+def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torch.Tensor, confidence: torch.Tensor,
+                     camera: Camera, *, tile: int, stride: int, confidence_scale: float,
+                     scales: LikelihoodScales = LikelihoodScales(), hypotheses: tuple[PsfHypothesis, ...] | None = None,
+                     black_level: float = 0.0, seed_window: float = SEED_WINDOW, q_step: float = Q_STEP,
+                     band: float = 0.25, max_kernel: int = 65, profile_tiles: int = PROFILE_TILES
+                     ) -> LikelihoodStageResult:
+    """The model's depth map refined by each tile's likelihood fit (see the module documentation).
+
+    Args:
+        image_f1, image_f2: ``(B, 1, H, W)`` the DFD pair, linear in irradiance (any gain).
+        depth, confidence: ``(B, 1, h, w)`` the model's map on its tile grid (metres, [0, 1]).
+        camera: the camera the frames come from.
+        tile, stride: the model's tile grid in px.
+        confidence_scale: the model's ``b0`` (its confidence's Laplace scale).
+        scales: the sigmas' factors (:class:`~tdfd.dfd.inverse_variance.LikelihoodScales`).
+        hypotheses: the PSFs to profile over; ``None``: every shape
+            (:func:`~tdfd.dfd.psf_hypotheses.psf_hypotheses` of an unknown family).
+        black_level: the frames' black level, in their units.
+        seed_window, q_step, band, max_kernel, profile_tiles: see
+            :func:`~tdfd.dfd.seeded_fit.seeded_tile_fit` (the model's most confident tiles choose the PSF).
+
+    Returns:
+        :class:`LikelihoodStageResult`.
+
+    Raises:
+        ShapeError: frames, or a map not on their tile grid.
+        NonFiniteError: non-finite inputs.
+        InputError: depths not > 0, confidences outside [0, 1], a frame with no light above the
+            black level, bad options.
+    """
+    _check(image_f1, image_f2, depth, confidence, tile, stride)
+    hyps = psf_hypotheses(camera) if hypotheses is None else tuple(hypotheses)
+    if not hyps:
+        raise InputError("the stage needs at least one PSF hypothesis")
+    b, _, height, width = image_f1.shape
+    half = kernel_side(camera, hyps, inverse_depth_grid(camera, seed_window, q_step), max_kernel) // 2
+    valid = valid_tiles(height, width, tile, stride, half)
+    ii, jj = valid.nonzero(as_tuple=True)
+    origins = [(int(i) * stride, int(j) * stride) for i, j in zip(ii, jj)]
+    sigma_m = model_sigma(confidence, confidence_scale)  # relative, (B, 1, h, w), before its factor
+    out_d, out_c = depth.clone(), confidence.clone()
+    fit_d = torch.full_like(depth, math.nan)
+    fit_s = torch.full_like(depth, math.inf)
+    slopes = torch.zeros_like(depth)
+    chosen = []
+    for k in range(b):
+        if not origins:
+            chosen.append(hyps[0])
+            continue
+        y1, y2 = (im[k, 0].to(torch.float64) - black_level for im in (image_f1, image_f2))
+        m1, m2 = float(y1.mean()), float(y2.mean())
+        if not (m1 > 0 and m2 > 0):
+            raise InputError(f"image {k}: a frame has no light above the black level (means {m1:.4g}, {m2:.4g})")
+        y2 = y2 * (m1 / m2)
+        seed = 1.0 / depth[k, 0, ii, jj].to(torch.float64)
+        slope = tile_slope(1.0 / depth[k, 0].to(torch.float64))[ii, jj]
+        f_fit, f_model = scales.factors(slope)
+        fit = seeded_tile_fit(y1, y2, camera, origins, tile, seed, hyps, window=seed_window, step=q_step, band=band,
+                              max_kernel=max_kernel, profile_tiles=profile_tiles, profile_by=confidence[k, 0, ii, jj])
+        s_fit = fit.sigma_q * f_fit  # 1/m
+        s_model = sigma_m[k, 0, ii, jj] * f_model * seed  # relative -> 1/m
+        q, s_q = fuse(fit.q, s_fit, seed, s_model)
+        out_d[k, 0, ii, jj] = (1.0 / q).to(depth.dtype)
+        out_c[k, 0, ii, jj] = confidence_from_sigma(s_q / q / f_model, confidence_scale).to(confidence.dtype)
+        fit_d[k, 0, ii, jj] = (1.0 / fit.q).to(depth.dtype)
+        fit_s[k, 0, ii, jj] = (s_fit / fit.q).to(depth.dtype)
+        slopes[k, 0, ii, jj] = slope.to(depth.dtype)
+        chosen.append(fit.hypothesis)
+    fitted = torch.zeros_like(depth, dtype=torch.bool)
+    fitted[:, 0, ii, jj] = True
+    return LikelihoodStageResult(out_d, out_c, fit_d, fit_s, fitted, chosen, slopes)
+
+
+class LikelihoodStage(nn.Module):
+    """:func:`likelihood_stage` with its camera, grid, scales and PSF hypotheses bound.
+
+    Args:
+        camera: the camera the frames come from.
+        tile, stride, confidence_scale: the model's grid and ``b0``.
+        scales: the sigmas' factors (default: the raw sigmas).
+        family: the measured PSF family (``"gaussian"``, ``"pillbox"``; ``None`` or
+            ``"unknown"``: every shape).
+        wavelength_m: the diffraction hypothesis's wavelength.
+        black_level, seed_window, q_step, band, max_kernel, profile_tiles: as for :func:`likelihood_stage`.
+    """
+
+    def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, confidence_scale: float = 0.01, *,
+                 scales: LikelihoodScales = LikelihoodScales(), family: str | None = None,
+                 wavelength_m: float = WAVELENGTH_M, black_level: float = 0.0, seed_window: float = SEED_WINDOW,
+                 q_step: float = Q_STEP, band: float = 0.25, max_kernel: int = 65,
+                 profile_tiles: int = PROFILE_TILES) -> None:
+        super().__init__()
+        self.camera, self.tile, self.stride = camera, int(tile), int(stride)
+        self.confidence_scale, self.scales = float(confidence_scale), scales
+        self.hypotheses = psf_hypotheses(camera, family, wavelength_m)
+        self.options = dict(black_level=float(black_level), seed_window=float(seed_window), q_step=float(q_step),
+                            band=float(band), max_kernel=int(max_kernel), profile_tiles=int(profile_tiles))
+        inverse_depth_grid(camera, seed_window, q_step)  # bad options fail here, not on the first pair
+        if not 0.0 < band <= 0.5:
+            raise InputError(f"band must lie in (0, 0.5] cycles/px, got {band}")
+
+    @classmethod
+    def for_model(cls, model: nn.Module, **kwargs) -> "LikelihoodStage":
+        """The stage for a :class:`~tdfd.model.DFDModel`'s camera, grid and confidence scale."""
+        return cls(model.camera, model.tile, model.stride, model.confidence_scale, **kwargs)
+
+    def forward(self, image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torch.Tensor,
+                confidence: torch.Tensor) -> LikelihoodStageResult:
+        with torch.no_grad():
+            return likelihood_stage(image_f1, image_f2, depth, confidence, self.camera, tile=self.tile,
+                                    stride=self.stride, confidence_scale=self.confidence_scale, scales=self.scales,
+                                    hypotheses=self.hypotheses, **self.options)

@@ -1,0 +1,119 @@
+r"""The lens PSFs a likelihood fit tries: the defocus profile's shape, with or without diffraction.
+
+A real lens's defocus PSF lies between a Gaussian (aberrations and diffraction smooth the
+blur circle; paper eq. 7) and a uniform disk (the geometric blur circle); tdfd writes every
+shape as the power-exponential profile ``exp(-(r / alpha)^beta)`` of RMS radius ``sigma``
+(:mod:`tdfd.optics.psf`: ``beta = 2`` Gaussian, ``beta -> inf`` pillbox), so one blur
+``sigma = M |P - P*|`` (paper eq. 7) means the same for every shape. Diffraction softens it:
+the Airy pattern of the working f-number ``N``, approximated by a Gaussian of RMS radius
+``0.42 lambda N`` (metres; divided by the pixel pitch for pixels) convolved with the defocus
+profile. A :class:`PsfHypothesis` is one such PSF; :func:`psf_hypotheses` the set a fit profiles
+over when the camera's family is measured (the camera file's ``psf_family``) or not.
+
+Example:
+    >>> import torch
+    >>> from tdfd import Camera
+    >>> hyps = psf_hypotheses(Camera.preset("reference"), "pillbox")
+    >>> [(h.shape, round(h.diffraction_px, 2)) for h in hyps]
+    [('pillbox', 0.0), ('pillbox', 0.62)]
+    >>> k = hyps[1].kernels(torch.tensor([2.0, -3.0], dtype=torch.float64), 21)
+    >>> tuple(k.shape), [round(float(v), 6) for v in k.sum((-1, -2))]
+    ((2, 21, 21), [1.0, 1.0])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..camera import Camera
+from ..errors import InputError, ShapeError
+from ..optics.psf import PSFShape, convolve_gaussian, kernel_size_for, psf_kernel
+
+__all__ = ["SHAPES", "WAVELENGTH_M", "PsfHypothesis", "diffraction_px", "psf_hypotheses"]
+
+#: The profile shapes tried when the family is not measured: pillbox, power-exponential ``beta`` of
+#: kurtosis steps between, Gaussian.
+SHAPES: tuple[PSFShape, ...] = ("pillbox", 10.0, 5.0, 1 / 0.3, 2.5, "gaussian")
+#: The wavelength of the diffraction hypothesis (m): a red laser pattern, the paper's assist light.
+WAVELENGTH_M = 650e-9
+#: The factor of the Gaussian approximation of the Airy pattern: RMS radius ``0.42 lambda N``.
+AIRY_RMS = 0.42
+
+
+def diffraction_px(camera: Camera, wavelength_m: float = WAVELENGTH_M) -> float:
+    """RMS radius in px of the Gaussian approximation of the Airy pattern at frame 1's working
+    f-number ``N = F1 / A``: ``0.42 lambda N / pitch``.
+
+    Raises:
+        InputError: a wavelength that is not finite and > 0.
+    """
+    if not (wavelength_m > 0 and wavelength_m < 1e-3):
+        raise InputError(f"wavelength must be in (0, 1 mm), got {wavelength_m} m")
+    f_number = camera.focal_lengths_m[0] / camera.aperture_m
+    return AIRY_RMS * wavelength_m * f_number / camera.pixel_pitch_m
+
+
+@dataclass(frozen=True)
+class PsfHypothesis:
+    """One lens PSF: a defocus profile's shape and a diffraction blur.
+
+    Args:
+        shape: ``"gaussian"``, ``"pillbox"`` or a power-exponential exponent ``beta >= 1``.
+        diffraction_px: RMS radius of the Gaussian diffraction blur in px (0: none).
+    """
+
+    shape: PSFShape = "gaussian"
+    diffraction_px: float = 0.0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.shape, str):
+            if self.shape not in ("gaussian", "pillbox"):
+                raise InputError(f"unknown PSF shape {self.shape!r}; use 'gaussian', 'pillbox' or a beta >= 1")
+        elif not float(self.shape) >= 1.0:
+            raise InputError(f"a power-exponential shape needs beta >= 1, got {self.shape}")
+        if not (self.diffraction_px >= 0 and self.diffraction_px < 1e3):
+            raise InputError(f"diffraction_px must be finite and >= 0, got {self.diffraction_px}")
+
+    @property
+    def diffraction_pad(self) -> int:
+        """Half-size of the diffraction kernel (0 without one)."""
+        return kernel_size_for(self.diffraction_px) // 2 if self.diffraction_px > 0 else 0
+
+    def kernel_size(self, sigma_max: float) -> int:
+        """Odd side that holds the PSF of RMS radius ``sigma_max`` px and its diffraction."""
+        return kernel_size_for(sigma_max, "pillbox" if self.shape == "pillbox" else "gaussian") \
+            + 2 * self.diffraction_pad
+
+    def kernels(self, sigma: torch.Tensor, size: int) -> torch.Tensor:
+        """PSFs ``(N, size, size)`` of unit sum for the signed blurs ``sigma`` ``(N,)`` px (a
+        ``size`` below :meth:`kernel_size` truncates them, each renormalised).
+
+        Raises:
+            ShapeError: an even ``size`` or one that leaves no room inside the diffraction pad.
+        """
+        pad = self.diffraction_pad
+        if size % 2 == 0 or size - 2 * pad < 1:
+            raise ShapeError(f"kernel size must be odd and above {2 * pad}, got {size}")
+        k = psf_kernel(sigma.reshape(-1), self.shape, size - 2 * pad)
+        return convolve_gaussian(k, self.diffraction_px, pad) if pad else k
+
+
+def psf_hypotheses(camera: Camera, family: str | None = None, wavelength_m: float = WAVELENGTH_M
+                   ) -> tuple[PsfHypothesis, ...]:
+    """The PSFs a fit profiles over: the measured family's shape (``"gaussian"`` or
+    ``"pillbox"``; ``None`` or ``"unknown"``: every shape of :data:`SHAPES`), each without and
+    with the diffraction of :func:`diffraction_px`.
+
+    Raises:
+        InputError: an unknown family or a bad wavelength.
+    """
+    if family in (None, "unknown"):
+        shapes: tuple[PSFShape, ...] = SHAPES
+    elif family in ("gaussian", "pillbox"):
+        shapes = (family,)
+    else:
+        raise InputError(f"psf family must be 'gaussian', 'pillbox', 'unknown' or None, got {family!r}")
+    d = diffraction_px(camera, wavelength_m)
+    return tuple(PsfHypothesis(sh, dd) for dd in (0.0, d) for sh in shapes)

@@ -1,0 +1,177 @@
+r"""Each tile's cross-residual fit of ``q = 1/d``, searched near a seed, with its uncertainty.
+
+The per-tile likelihood of :func:`tdfd.dfd.cross_residual.tile_cross_residual_nll` is evaluated
+on a uniform grid of inverse depth, only within ``window`` (relative) of each tile's seed (the
+refinement CNN's estimate: its robustness against the gross minima of weak textures is kept),
+for every PSF hypothesis (:mod:`tdfd.dfd.psf_hypotheses`); the parabola through the grid minimum
+refines it (:func:`~tdfd.dfd.cross_residual.parabolic_minima`).
+
+The noise is not told. Both frames are taken to have the same noise variance ``nu`` (equal mean
+levels: the caller matches the frames' means), unknown per tile, and the NLL is computed with
+``nu = 1``; its expectation at the true ``q`` is then ``nu`` itself, so the minimum estimates the
+tile's noise (model mismatch included, which only lowers the fit's weight), and
+
+.. math::
+
+    \operatorname{var}(\hat q) = \frac{\mathrm{NLL}_{\min}}{B \; \partial^2 \mathrm{NLL} / \partial q^2}
+
+with ``B`` the tile's independent bins (:func:`~tdfd.dfd.cross_residual.independent_bins`). The
+image shares one PSF hypothesis: the one with the least ``sum_t log NLL_min,t`` (the likelihood
+of tiles of unknown noise, each profiled out) over the :data:`PROFILE_TILES` tiles the caller
+ranks first (the model's most confident); every tile is then fitted with it alone. Only the
+(hypothesis, tile) pairs inside a tile's window are evaluated, each on the tile's own region.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+
+from ..camera import Camera
+from ..errors import InputError, ShapeError
+from ..optics.thin_lens import camera_sigmas
+from .cross_residual import independent_bins, parabolic_minima, tile_cross_residual_nll
+from .psf_hypotheses import PsfHypothesis
+
+__all__ = ["SEED_WINDOW", "Q_STEP", "PROFILE_TILES", "inverse_depth_grid", "seed_mask", "kernel_side", "SeededFit", "seeded_tile_fit"]
+
+#: The relative half-width of each tile's search around its seed.
+SEED_WINDOW = 0.05
+#: The grid step of inverse depth (1/m).
+Q_STEP = 0.01
+#: The tiles that choose the shared PSF hypothesis (the rest is fitted with it alone).
+PROFILE_TILES = 32
+
+
+def inverse_depth_grid(camera: Camera, window: float = SEED_WINDOW, step: float = Q_STEP) -> torch.Tensor:
+    """``(Q,)`` float64 uniform grid of ``q`` (1/m) over the camera's depth range widened so that
+    a seed at either end keeps its whole window: ``(1 - 4 w) / d_far`` to ``(1 + 2 w) / d_near``.
+
+    Example:
+        >>> from tdfd import Camera
+        >>> g = inverse_depth_grid(Camera.preset("reference"))
+        >>> round(float(g[0]), 2), round(float(g[-1]), 2), len(g)
+        (0.8, 3.66, 287)
+    """
+    if not 0 < window < 0.25:
+        raise InputError(f"seed window must lie in (0, 0.25), got {window}")
+    if not step > 0:
+        raise InputError(f"q step must be > 0, got {step}")
+    near, far = camera.depth_range_m
+    lo, hi = (1.0 - 4.0 * window) / far, (1.0 + 2.0 * window) / near
+    return lo + step * torch.arange(int(math.floor((hi - lo) / step + 1e-9)) + 1, dtype=torch.float64)
+
+
+def seed_mask(grid: torch.Tensor, seed_q: torch.Tensor, window: float = SEED_WINDOW) -> torch.Tensor:
+    """``(Q, T)``: the hypotheses within ``window`` (relative) of each tile's seed ``(T,)``, and
+    for a seed off the grid at least its nearest grid point.
+
+    Example:
+        >>> m = seed_mask(torch.arange(1.0, 2.01, 0.1, dtype=torch.float64), torch.tensor([1.5, 9.0]), 0.07)
+        >>> m[:, 0].nonzero().flatten().tolist(), m[:, 1].nonzero().flatten().tolist()
+        ([4, 5, 6], [10])
+    """
+    if window <= 0:
+        raise InputError(f"seed_window must be > 0, got {window}")
+    if seed_q.ndim != 1:
+        raise InputError(f"need one seed per tile, (T,), got {tuple(seed_q.shape)}")
+    if not bool(torch.isfinite(seed_q).all()) or not bool((seed_q > 0).all()):
+        raise InputError("seeds must be finite inverse depths > 0")
+    dist = (grid[:, None] - seed_q[None, :].to(grid.dtype)).abs()
+    near = dist <= window * seed_q[None, :]
+    near[dist.argmin(0), torch.arange(seed_q.shape[0])] = True
+    return near
+
+
+def kernel_side(camera: Camera, hypotheses: Sequence[PsfHypothesis], grid: torch.Tensor, max_kernel: int) -> int:
+    """The odd kernel side the fit uses: what the largest blur on ``grid`` needs under any
+    hypothesis, at most ``max_kernel``."""
+    if max_kernel < 3 or max_kernel % 2 == 0:
+        raise InputError(f"max_kernel must be odd and >= 3, got {max_kernel}")
+    smax = max(float(s.abs().max()) for s in camera_sigmas(camera, 1.0 / grid))
+    return min(max(h.kernel_size(smax) for h in hypotheses), max_kernel) | 1
+
+
+@dataclass(frozen=True)
+class SeededFit:
+    """One image's seeded per-tile fit (:func:`seeded_tile_fit`).
+
+    Attributes:
+        q: ``(T,)`` each tile's inverse depth (1/m).
+        sigma_q: ``(T,)`` its standard deviation (1/m); ``inf`` where the minimum lies on the
+            search window's edge or the curvature is not positive (no weight).
+        noise: ``(T,)`` the NLL at the minimum: the tile's noise variance relative to the fit's
+            unit (about 1 for a well-modelled tile of unit noise).
+        hypothesis: the PSF the image shares.
+    """
+
+    q: torch.Tensor
+    sigma_q: torch.Tensor
+    noise: torch.Tensor
+    hypothesis: PsfHypothesis
+
+
+def seeded_tile_fit(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, origins: Sequence[tuple[int, int]], tile: int,
+                    seed_q: torch.Tensor, hypotheses: Sequence[PsfHypothesis], *, window: float = SEED_WINDOW,
+                    step: float = Q_STEP, band: float = 0.25, max_kernel: int = 65,
+                    profile_tiles: int = PROFILE_TILES, profile_by: torch.Tensor | None = None) -> SeededFit:
+    """The seeded fit of every tile of one image.
+
+    Args:
+        y1, y2: ``(H, W)`` frames linear in irradiance, black level removed, means matched.
+        camera: the thin-lens camera that maps ``q`` to each frame's blur (paper eqs. 1-7).
+        origins: ``T`` tiles' top-left pixels; each a kernel's half-width inside the frame.
+        tile: tile side in px.
+        seed_q: ``(T,)`` the seeds (1/m).
+        hypotheses: the PSFs profiled over (at least one).
+        window, step: the search's relative half-width and grid step (:func:`inverse_depth_grid`).
+        band: the likelihood's band, cycles/px.
+        max_kernel: the largest kernel side (odd); larger blurs are truncated.
+        profile_tiles: how many tiles choose the shared PSF (then every tile is fitted with it).
+        profile_by: ``(T,)`` the tiles' priority for that choice (e.g. the model's confidence;
+            ``None``: the first ``profile_tiles``).
+
+    Raises:
+        InputError: no hypothesis, seeds not ``(T,)`` finite and > 0, bad options.
+        ShapeError: bad frames or a tile outside the valid residual.
+    """
+    if not hypotheses:
+        raise InputError("the fit needs at least one PSF hypothesis")
+    if seed_q.shape != (len(origins),):
+        raise InputError(f"need one seed per tile ({len(origins)}), got {tuple(seed_q.shape)}")
+    if y1.ndim != 2 or y1.shape != y2.shape:
+        raise ShapeError(f"frames must be two (H, W) of one shape, got {tuple(y1.shape)} and {tuple(y2.shape)}")
+    if profile_tiles < 1:
+        raise InputError(f"profile_tiles must be >= 1, got {profile_tiles}")
+    grid = inverse_depth_grid(camera, window, step)
+    mask = seed_mask(grid, seed_q.to(torch.float64), window)
+    size = kernel_side(camera, hypotheses, grid, max_kernel)
+    unit = torch.ones(len(origins), dtype=torch.float64)
+
+    def minima(hyp: PsfHypothesis, tiles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        sub = torch.zeros_like(mask)
+        sub[:, tiles] = mask[:, tiles]
+        idx = sub.any(1).nonzero().flatten()
+        sig = torch.stack([s.reshape(-1) for s in camera_sigmas(camera, 1.0 / grid[idx])], 1).to(torch.float64)
+        ks = hyp.kernels(sig.reshape(-1), size).reshape(len(idx), 2, size, size)
+        nll = torch.full((len(grid), len(origins)), math.inf, dtype=torch.float64)
+        nll[idx] = tile_cross_residual_nll(y1, y2, ks[:, 0], ks[:, 1], unit, unit, origins, tile, band,
+                                           mask=sub[idx])
+        q, value, curvature = parabolic_minima(nll[:, tiles], grid)
+        return q, value, curvature
+
+    every = torch.arange(len(origins))
+    c = 0
+    if len(hypotheses) > 1:  # the shared PSF, from the profile_tiles tiles the model is surest of
+        order = every if profile_by is None else torch.argsort(-profile_by.to(torch.float64), stable=True)
+        chosen = order[:profile_tiles].sort().values
+        totals = [float(torch.log(minima(h, chosen)[1].clamp_min(1e-300)).sum()) for h in hypotheses]
+        c = min(range(len(hypotheses)), key=totals.__getitem__)
+    q, value, curvature = minima(hypotheses[c], every)
+    ok = torch.isfinite(curvature)
+    var = value / (independent_bins(tile, band) * torch.where(ok, curvature, torch.ones_like(curvature)))
+    sigma = torch.where(ok, var.sqrt(), torch.full_like(var, math.inf))
+    return SeededFit(q=q, sigma_q=sigma, noise=value, hypothesis=hypotheses[c])

@@ -1,0 +1,85 @@
+"""The likelihood stage after an exported model: an ONNX Runtime result refined tile by tile.
+
+``tdfd depth F1 F2 --likelihood-stage SCALES.json`` runs the ONNX file
+(:class:`tdfd.runtime.DepthRuntime`), then :class:`tdfd.dfd.likelihood_stage.LikelihoodStage`
+(torch) on the same normalised frames, the file's camera, grid and confidence scale, the
+lens's PSF family the CNN is told (``--psf-family``; unknown: every shape) and the sigma factors
+of ``SCALES.json`` (``python -m training.fit_likelihood_stage``; the shipped model's:
+``models/reference.likelihood.json``). The best map of the result (the pooled one, else the
+tiles') is replaced by the stage's fused map; each tile's own estimate stays as the file gave
+it. The stage is not in the ONNX graph (its cost is seconds per pair; docs/ARCHITECTURE.md).
+
+The stage models neither focus breathing nor a camera other than the model's (its blur per
+inverse depth is the file's camera), so a file that registers breathing, or a runtime covering
+another camera, is refused; so is a result at full resolution (the stage works on the tile grid).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .contract import MODEL_KEY
+from .dfd.inverse_variance import LikelihoodScales
+from .dfd.likelihood_stage import LikelihoodStage
+from .errors import InputError, ModelError
+from .runtime import DepthResult, DepthRuntime
+
+__all__ = ["stage_for_runtime", "refine_result"]
+
+
+def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: float = 0.0) -> LikelihoodStage:
+    """The likelihood stage for ``rt``'s file: its camera, grid, confidence scale and told family.
+
+    Args:
+        rt: the runtime whose results the stage refines.
+        scales_path: the sigma factors (:meth:`~tdfd.dfd.inverse_variance.LikelihoodScales.load`).
+        black_level: the frames' black level as a fraction of full scale (``[0, 1)``).
+
+    Raises:
+        InputError: a file with focus breathing, a runtime for another camera, a bad black level.
+        ModelError: a scales file that cannot be read, or a file without a positive
+            ``confidence_scale`` in its metadata.
+    """
+    if rt.magnification_per_dpt:
+        raise InputError(f"{rt.path.name} registers focus breathing, which the likelihood stage does not model")
+    if rt.inverse_depth_offset_dpt:
+        raise InputError(f"the runtime covers camera {rt.camera.name!r} with another camera's model; the likelihood "
+                         f"stage needs the model's own camera")
+    if not 0.0 <= black_level < 1.0:
+        raise InputError(f"the black level must be a fraction of full scale in [0, 1), got {black_level}")
+    meta = rt.metadata.get(MODEL_KEY)
+    b0 = meta.get("confidence_scale") if isinstance(meta, dict) else None
+    if not isinstance(b0, (int, float)) or not b0 > 0:
+        raise ModelError(f"{rt.path} has no positive confidence_scale in its {MODEL_KEY!r} metadata")
+    return LikelihoodStage(rt.camera, rt.tile, rt.stride, float(b0), scales=LikelihoodScales.load(scales_path),
+                           family=rt.psf_family, black_level=black_level)
+
+
+def refine_result(rt: DepthRuntime, stage: LikelihoodStage, image_f1: np.ndarray, image_f2: np.ndarray,
+                  result: DepthResult, white_level: float | None = None) -> DepthResult:
+    """``result`` (of ``rt`` on these frames, on the tile grid) with its best map refined by ``stage``
+    (a pair the runtime found to be no DFD pair keeps its map, at confidence 0).
+
+    Raises:
+        InputError: a result at full resolution, or one whose grid is not the frames'.
+    """
+    if result.full_resolution:
+        raise InputError("the likelihood stage refines a result on the tile grid, not one at full resolution")
+    a, b, _ = rt.prepare(image_f1, image_f2, white_level)
+    depth, conf = result.depth_map
+    grid = (a.shape[0], 1, *depth.shape[-2:])
+    if int(np.prod(depth.shape)) != int(np.prod(grid)):
+        raise InputError(f"the result's map {depth.shape} is not the frames' tile grid {grid}")
+    d = torch.from_numpy(np.asarray(depth, np.float32).reshape(grid).copy())
+    c = torch.from_numpy(np.asarray(conf, np.float32).reshape(grid).copy())
+    out = stage(torch.from_numpy(a), torch.from_numpy(b), d, c)
+    new_d, new_c = out.depth.numpy().copy(), out.confidence.numpy().copy()
+    for k, problem in enumerate(result.problems):  # no DFD pair: keep its map and its confidence 0
+        if problem and k < len(new_d):
+            new_d[k], new_c[k] = d[k].numpy(), c[k].numpy()
+    return replace(result, depth_pooled=new_d.reshape(depth.shape).astype(np.float32),
+                   confidence_pooled=new_c.reshape(conf.shape).astype(np.float32))

@@ -1,0 +1,239 @@
+"""The product's likelihood stage (tdfd.dfd.likelihood_stage and its parts): PSF hypotheses equal
+to the renderer's kernels, the per-tile residual computed locally equal to the frame's, a seeded
+fit that finds a rendered plane's depth and shared PSF with the noise not told, the fusion and
+its scales file, and the stage's grid, ring and fault behaviour."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from data_synth.psf import PSFModel
+from tdfd import Camera
+from tdfd.dfd.cross_residual import tile_cross_residual_nll, valid_residual
+from tdfd.dfd.inverse_variance import (LikelihoodScales, confidence_from_sigma, fuse, model_sigma, sigma_factor,
+                                      tile_slope)
+from tdfd.dfd.likelihood_stage import LikelihoodStage, likelihood_stage, valid_tiles
+from tdfd.dfd.psf_hypotheses import SHAPES, PsfHypothesis, diffraction_px, psf_hypotheses
+from tdfd.dfd.seeded_fit import inverse_depth_grid, seed_mask, seeded_tile_fit
+from tdfd.errors import InputError, ModelError, NonFiniteError, ShapeError
+from tdfd.optics.thin_lens import camera_sigmas
+
+CAM = Camera.preset("reference")
+
+
+def render_plane(depth_m: float, hyp: PsfHypothesis, size: int = 192, noise: float = 1e-4, seed: int = 0,
+                 gain2: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """A fronto-parallel plane's two frames (B, 1, H, W): a random texture blurred by ``hyp`` at
+    the camera's blurs for ``depth_m`` (valid convolution), white noise of std ``noise``."""
+    g = torch.Generator().manual_seed(seed)
+    n = 65
+    sharp = 0.3 + 0.4 * torch.rand(size + n - 1, size + n - 1, generator=g, dtype=torch.float64)
+    s1, s2 = (float(s) for s in camera_sigmas(CAM, depth_m))
+    k = hyp.kernels(torch.tensor([s1, s2], dtype=torch.float64), n)
+    frames = [torch.nn.functional.conv2d(sharp[None, None], k[i].flip(-1, -2)[None, None])[0, 0] for i in (0, 1)]
+    frames = [f + noise * torch.randn(f.shape, generator=g, dtype=torch.float64) for f in frames]
+    return frames[0][None, None].float(), (gain2 * frames[1])[None, None].float()
+
+
+def test_hypothesis_kernels_are_the_renderers():
+    sigma = torch.tensor([0.3, 2.5, -4.0], dtype=torch.float64)
+    for shape in ("gaussian", "pillbox", 5.0):
+        for d in (0.0, 0.62):
+            ours = PsfHypothesis(shape, d).kernels(sigma, 31)
+            theirs = PSFModel(shape, d).kernels(sigma, size=31)
+            torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-14)
+
+
+def test_hypotheses_follow_the_family_and_the_airy_rms():
+    d = 0.42 * 650e-9 * (CAM.focal_lengths_m[0] / CAM.aperture_m) / CAM.pixel_pitch_m
+    assert diffraction_px(CAM) == pytest.approx(d, rel=1e-12)
+    assert [h.shape for h in psf_hypotheses(CAM, "gaussian")] == ["gaussian", "gaussian"]
+    assert [h.diffraction_px for h in psf_hypotheses(CAM, "gaussian")] == [0.0, pytest.approx(d)]
+    assert len(psf_hypotheses(CAM)) == len(psf_hypotheses(CAM, "unknown")) == 2 * len(SHAPES)
+    for bad in ("disk", ""):
+        with pytest.raises(InputError, match="psf family"):
+            psf_hypotheses(CAM, bad)
+    with pytest.raises(InputError, match="wavelength"):
+        diffraction_px(CAM, -1.0)
+    for shape, dd in (("cone", 0.0), (0.5, 0.0), ("gaussian", -0.1), ("gaussian", math.nan)):
+        with pytest.raises(InputError):
+            PsfHypothesis(shape, dd)
+    with pytest.raises(ShapeError):
+        PsfHypothesis("gaussian", 0.62).kernels(torch.tensor([1.0]), 4)
+
+
+def test_the_local_tile_residual_is_the_frames_cut_and_the_mask_skips_pairs():
+    g = torch.Generator().manual_seed(1)
+    y1, y2 = (torch.rand(120, 140, generator=g, dtype=torch.float64) for _ in range(2))
+    k = PsfHypothesis("pillbox").kernels(torch.tensor([1.0, 2.0, -1.5, 3.0], dtype=torch.float64), 15).reshape(2, 2, 15, 15)
+    origins = [(7, 7), (40, 60), (49, 69)]
+    nu = torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)
+    full = tile_cross_residual_nll(y1, y2, k[:, 0], k[:, 1], nu, nu, origins, 32)
+    # the same tiles cut out of the whole frame's residual, as one tile covering each
+    v = valid_residual(y1, y2, k[:, 0], k[:, 1])
+    for t, (r, c) in enumerate(origins):
+        r0, c0 = r - 7, c - 7
+        region = (slice(r0, r0 + 32 + 14), slice(c0, c0 + 32 + 14))
+        alone = tile_cross_residual_nll(y1[region], y2[region], k[:, 0], k[:, 1], nu[t:t + 1], nu[t:t + 1],
+                                        [(7, 7)], 32)
+        torch.testing.assert_close(alone[:, 0], full[:, t], rtol=1e-12, atol=0)
+        assert torch.allclose(v[:, r0: r0 + 32, c0: c0 + 32].abs().sum(), v[:, r0: r0 + 32, c0: c0 + 32].abs().sum())
+    mask = torch.tensor([[True, False, True], [False, False, True]])
+    part = tile_cross_residual_nll(y1, y2, k[:, 0], k[:, 1], nu, nu, origins, 32, mask=mask)
+    torch.testing.assert_close(part[mask], full[mask], rtol=1e-12, atol=0)
+    assert bool(torch.isinf(part[~mask]).all())
+    with pytest.raises(InputError, match="mask"):
+        tile_cross_residual_nll(y1, y2, k[:, 0], k[:, 1], nu, nu, origins, 32, mask=mask[:, :2])
+
+
+def test_grid_and_seed_window():
+    grid = inverse_depth_grid(CAM)
+    near, far = CAM.depth_range_m
+    assert float(grid[0]) == pytest.approx(0.8 / far) and float(grid[-1]) <= 1.1 / near + 1e-9
+    m = seed_mask(grid, torch.tensor([2.005, 50.0], dtype=torch.float64))  # window +-0.10025: 1.91 .. 2.10
+    assert grid[m[:, 0]].tolist() == pytest.approx([1.91 + 0.01 * i for i in range(20)])
+    assert m[:, 1].nonzero().flatten().tolist() == [len(grid) - 1]  # off the grid: its nearest point
+    for bad in (torch.tensor([0.0]), torch.tensor([math.nan])):
+        with pytest.raises(InputError):
+            seed_mask(grid, bad)
+    with pytest.raises(InputError):
+        inverse_depth_grid(CAM, window=0.0)
+
+
+@pytest.mark.parametrize("true_hyp", [PsfHypothesis("pillbox"), PsfHypothesis("gaussian")])
+def test_the_seeded_fit_finds_a_rendered_planes_depth_and_psf_without_the_noise(true_hyp):
+    depth = 0.55
+    i1, i2 = render_plane(depth, true_hyp, noise=2e-4)
+    y1, y2 = i1[0, 0].double(), i2[0, 0].double()
+    origins = [(64, 64), (64, 96), (96, 64), (96, 96)]
+    seed = torch.full((4,), 1.0 / depth * 1.03, dtype=torch.float64)  # the model 3 % off
+    fit = seeded_tile_fit(y1, y2, CAM, origins, 64, seed, psf_hypotheses(CAM))
+    assert fit.hypothesis.shape == true_hyp.shape  # diffraction's 0.6 px is not told apart from a 4 px blur
+    err = (fit.q * depth - 1.0).abs()
+    assert float(err.max()) < 0.005
+    assert bool(torch.isfinite(fit.sigma_q).all()) and float((fit.sigma_q * depth).max()) < 0.01
+    # the NLL's minimum estimates the noise: white noise of variance v in both frames -> NLL about v
+    assert 0.5 < float(fit.noise.median()) / 2e-4 ** 2 < 2.0
+    # a seed whose window misses the truth: the minimum on the window's edge carries no weight
+    far = seeded_tile_fit(y1, y2, CAM, origins, 64, seed * 1.2, [true_hyp])
+    assert bool(torch.isinf(far.sigma_q).all())
+
+
+def test_model_sigma_and_confidence_invert_each_other():
+    b0 = 0.01
+    b = torch.tensor([0.005, 0.01, 0.04], dtype=torch.float64)
+    conf = 1.0 / (1.0 + (b / b0) ** 2)
+    torch.testing.assert_close(model_sigma(conf, b0), math.sqrt(2.0) * b)
+    torch.testing.assert_close(confidence_from_sigma(model_sigma(conf, b0), b0), conf)
+    assert math.isinf(float(model_sigma(torch.tensor([0.0]), b0)[0]))
+    assert float(confidence_from_sigma(torch.tensor([math.inf]), b0)[0]) == 0.0
+    for bad in (-0.1, 1.5, math.nan):
+        with pytest.raises(InputError):
+            model_sigma(torch.tensor([bad]), b0)
+    with pytest.raises(InputError):
+        model_sigma(conf, 0.0)
+
+
+def test_sigma_factor_makes_the_median_ratio_a_normals():
+    g = torch.Generator().manual_seed(0)
+    e = torch.randn(20000, generator=g, dtype=torch.float64) * 0.02
+    assert abs(sigma_factor(e, torch.full_like(e, 0.01)) - 2.0) < 0.05
+    assert abs(sigma_factor(e, torch.full_like(e, 0.02)) - 1.0) < 0.03
+    with pytest.raises(InputError):
+        sigma_factor(e, torch.full_like(e, math.inf))
+
+
+def test_fusion_weights_by_inverse_variance():
+    q, s = fuse(torch.tensor([1.0, 1.0, 1.0, 1.0], dtype=torch.float64),
+                torch.tensor([1.0, 2.0, math.inf, 0.0], dtype=torch.float64),
+                torch.tensor([2.0, 2.0, 2.0, 2.0], dtype=torch.float64),
+                torch.tensor([1.0, 1.0, 1.0, 1.0], dtype=torch.float64))
+    torch.testing.assert_close(q, torch.tensor([1.5, 1.8, 2.0, 1.0], dtype=torch.float64))
+    torch.testing.assert_close(s[:3], torch.tensor([0.5 ** 0.5, 0.8 ** 0.5, 1.0], dtype=torch.float64))
+    assert bool(torch.isfinite(q).all())
+    with pytest.raises(InputError, match="finite sigma"):
+        fuse(torch.tensor([1.0]), torch.tensor([math.inf]), torch.tensor([2.0]), torch.tensor([math.inf]))
+    with pytest.raises(InputError, match="shape"):
+        fuse(torch.tensor([1.0]), torch.tensor([1.0, 1.0]), torch.tensor([2.0]), torch.tensor([1.0]))
+
+
+def test_scales_round_trip_and_bad_files(tmp_path):
+    s = LikelihoodScales(2.5, 0.8, provenance={"command": "x", "tiles": 10})
+    s.save(tmp_path / "s.json")
+    back = LikelihoodScales.load(tmp_path / "s.json")
+    assert (back.fit, back.model, back.provenance) == ((2.5,), (0.8,), {"command": "x", "tiles": 10})
+    (tmp_path / "bad.json").write_text("{")
+    (tmp_path / "other.json").write_text(json.dumps({"format": "x", "fit": 1, "model": 1}))
+    (tmp_path / "neg.json").write_text(json.dumps({"format": "tdfd.likelihood_scales/1", "fit": -1, "model": 1}))
+    for name in ("bad.json", "other.json", "neg.json", "missing.json"):
+        with pytest.raises(ModelError):
+            LikelihoodScales.load(tmp_path / name)
+    with pytest.raises(InputError):
+        LikelihoodScales(math.inf, 1.0)
+    for bad in (dict(fit=(1.0, 2.0), model=1.0, slope_edges=(0.02,)), dict(fit=(1.0, 2.0), model=(1.0, 1.0)),
+                dict(fit=(1.0, 1.0, 1.0), model=(1.0, 1.0, 1.0), slope_edges=(0.03, 0.01))):
+        with pytest.raises(InputError):
+            LikelihoodScales(**bad)
+    banded = LikelihoodScales((1.5, 3.0), (0.7, 0.6), (0.02,), {"command": "y"})
+    banded.save(tmp_path / "b.json")
+    assert LikelihoodScales.load(tmp_path / "b.json") == banded
+
+
+def test_tile_slope_is_the_largest_relative_step_to_a_neighbour():
+    q = torch.ones(4, 5, dtype=torch.float64)
+    q[2, 3] = 1.2
+    slope = tile_slope(q)
+    assert float(slope[2, 3]) == pytest.approx(0.2 / 1.2)
+    assert float(slope[1, 2]) == pytest.approx(0.2) and float(slope[0, 0]) == 0.0
+    assert bool((slope[:, :2] == 0).all())
+
+
+def test_the_stage_refines_the_interior_and_keeps_the_ring():
+    depth = 0.55
+    hyp = PsfHypothesis("pillbox")
+    i1, i2 = render_plane(depth, hyp, size=192, noise=2e-4, gain2=1.3)  # a gain the mean match removes
+    i1, i2 = i1 + 0.05, i2 + 0.05  # a black level, told
+    model_d = torch.full((1, 1, 5, 5), depth * 1.03)
+    model_c = torch.full((1, 1, 5, 5), 0.2)
+    stage = LikelihoodStage(CAM, 64, 32, 0.01, family="pillbox", black_level=0.05)
+    r = stage(i1, i2, model_d, model_c)
+    inner = r.fitted[0, 0]
+    assert inner.int().tolist() == valid_tiles(192, 192, 64, 32, 32).int().tolist()
+    assert int(inner.sum()) == 9
+    assert float((r.depth[0, 0][inner] / depth - 1).abs().max()) < 0.01  # from 3 % to under 1 %
+    assert bool((r.confidence[0, 0][inner] > 0.2).all())
+    assert bool((r.depth[0, 0][~inner] == model_d[0, 0][~inner]).all())
+    assert bool((r.confidence[0, 0][~inner] == model_c[0, 0][~inner]).all())
+    assert bool(torch.isnan(r.depth_fit[0, 0][~inner]).all()) and bool(torch.isinf(r.sigma_fit[0, 0][~inner]).all())
+    assert r.hypotheses == [hyp]
+    # a model at confidence 1 wins outright; at 0 the fit does
+    sure = stage(i1, i2, model_d, torch.ones_like(model_c))
+    assert bool((sure.depth[0, 0][inner] == model_d[0, 0][inner]).all())
+    blind = stage(i1, i2, model_d, torch.zeros_like(model_c))
+    torch.testing.assert_close(blind.depth[0, 0][inner], r.depth_fit[0, 0][inner])
+
+
+def test_the_stage_rejects_bad_input_with_typed_errors():
+    i1 = torch.rand(1, 1, 160, 160, generator=torch.Generator().manual_seed(0))
+    d, c = torch.full((1, 1, 4, 4), 0.5), torch.full((1, 1, 4, 4), 0.5)
+    kw = dict(tile=64, stride=32, confidence_scale=0.01)
+    with pytest.raises(ShapeError, match="tile grid"):
+        likelihood_stage(i1, i1, d[..., :3], c, CAM, **kw)
+    with pytest.raises(ShapeError, match="frames"):
+        likelihood_stage(i1, i1[..., :150], d, c, CAM, **kw)
+    bad = i1.clone()
+    bad[0, 0, 3, 3] = math.nan
+    with pytest.raises(NonFiniteError):
+        likelihood_stage(bad, i1, d, c, CAM, **kw)
+    with pytest.raises(InputError, match="depths"):
+        likelihood_stage(i1, i1, -d, c, CAM, **kw)
+    with pytest.raises(InputError, match="confidences"):
+        likelihood_stage(i1, i1, d, c + 1.0, CAM, **kw)
+    with pytest.raises(InputError, match="no light"):
+        likelihood_stage(i1, i1, d, c, CAM, black_level=2.0, **kw)
+    with pytest.raises(InputError, match="band"):
+        LikelihoodStage(CAM, band=0.9)
