@@ -230,7 +230,8 @@ def structure_rows(model: DFDModel, stage: LikelihoodStage, scenes: int) -> dict
 
 def structure_table(rows: dict[str, dict[str, torch.Tensor]], reps: int = 200) -> list[list]:
     """Per layout and tile set (away from edges, all): the model's and the fused map's median
-    error, on the fitted tiles the stage's own fit's and the model's, the fused - model difference with its 95 % interval over a bootstrap of the scenes,
+    error, on the fitted tiles the stage's own fit's and the model's, the fused - model difference
+    with its 95 % interval over a bootstrap of the scenes,
     the share at confidence >= 0.5 and the median error there (model / fused)."""
     table = []
     for layout, t in rows.items():

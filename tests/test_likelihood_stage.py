@@ -69,7 +69,8 @@ def test_hypotheses_follow_the_family_and_the_airy_rms():
 def test_the_local_tile_residual_is_the_frames_cut_and_the_mask_skips_pairs():
     g = torch.Generator().manual_seed(1)
     y1, y2 = (torch.rand(120, 140, generator=g, dtype=torch.float64) for _ in range(2))
-    k = PsfHypothesis("pillbox").kernels(torch.tensor([1.0, 2.0, -1.5, 3.0], dtype=torch.float64), 15).reshape(2, 2, 15, 15)
+    sig = torch.tensor([1.0, 2.0, -1.5, 3.0], dtype=torch.float64)
+    k = PsfHypothesis("pillbox").kernels(sig, 15).reshape(2, 2, 15, 15)
     origins = [(7, 7), (40, 60), (49, 69)]
     nu = torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)
     full = tile_cross_residual_nll(y1, y2, k[:, 0], k[:, 1], nu, nu, origins, 32)

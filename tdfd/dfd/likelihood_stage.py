@@ -14,7 +14,8 @@ grid the stage:
    shape, or every shape, each without and with the diffraction of the working f-number), the
    noise not told (:func:`tdfd.dfd.seeded_fit.seeded_tile_fit`);
 3. fuses the fit with the model by inverse variance, each sigma times its factor for the tile's
-   slope in the model's map (the fit assumes a fronto-parallel tile), fitted on training scenes (:mod:`tdfd.dfd.inverse_variance`, ``training/fit_likelihood_stage.py``), and
+   slope in the model's map (the fit assumes a fronto-parallel tile), fitted on training scenes
+   (:mod:`tdfd.dfd.inverse_variance`, ``training/fit_likelihood_stage.py``), and
    states the fused sigma as a confidence on the model's scale: a tile the fit adds nothing to
    keeps the model's confidence.
 

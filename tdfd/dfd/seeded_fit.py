@@ -36,7 +36,8 @@ from ..optics.thin_lens import camera_sigmas
 from .cross_residual import independent_bins, parabolic_minima, tile_cross_residual_nll
 from .psf_hypotheses import PsfHypothesis
 
-__all__ = ["SEED_WINDOW", "Q_STEP", "PROFILE_TILES", "inverse_depth_grid", "seed_mask", "kernel_side", "SeededFit", "seeded_tile_fit"]
+__all__ = ["SEED_WINDOW", "Q_STEP", "PROFILE_TILES", "inverse_depth_grid", "seed_mask", "kernel_side", "SeededFit",
+           "seeded_tile_fit"]
 
 #: The relative half-width of each tile's search around its seed.
 SEED_WINDOW = 0.05
