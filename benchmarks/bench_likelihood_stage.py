@@ -37,7 +37,6 @@ timed beside the model's.
 from __future__ import annotations
 
 import argparse
-import math
 import random
 import statistics
 import sys
@@ -55,7 +54,7 @@ from benchmarks.depth_edges import edge_tiles, tile_depth_spread
 from benchmarks.uncertainty import resample_scenes
 from benchmarks.bench_tile_oracle import SEED_WINDOW, interior_origins, profile_tiles, tile_nll_stack, tile_noise
 from benchmarks.report import ROOT, comma_choices, machine, markdown_table, median_time, update_section
-from tdfd.dfd.cross_residual import independent_bins
+from tdfd.dfd.cross_residual import curvature_sigma, independent_bins
 from tdfd.dfd.inverse_variance import LikelihoodScales, fuse, model_sigma, sigma_factor
 from tdfd.dfd.likelihood_stage import LikelihoodStage
 from tdfd.dfd.seeded_fit import seed_mask
@@ -91,10 +90,7 @@ def seeded_fit(nll: torch.Tensor, grid: torch.Tensor, seed_q: torch.Tensor, bins
     if not bins > 0:
         raise InputError(f"bins must be > 0, got {bins}")
     q, j, curvature = profile_tiles(nll, grid, seed_mask(grid, seed_q, window))
-    ok = torch.isfinite(curvature)  # finite only where positive
-    sigma = torch.where(ok, 1.0 / (bins * torch.where(ok, curvature, torch.ones_like(curvature))).sqrt(),
-                        torch.full_like(curvature, math.inf))
-    return q, sigma, j
+    return q, curvature_sigma(curvature, bins), j
 
 
 def paired_bootstrap(a: list[list[float]], b: list[list[float]], resamples: int = 1000, seed: int = 0
@@ -140,9 +136,8 @@ def run_world(world: str, samples: int, model: DFDModel, modes: tuple[str, ...] 
                "model_sigma": model_sigma(conf[i][inner, inner].flatten().clamp(1e-9, 1.0),
                                           model.confidence_scale).tolist()}
         if stage is not None:
-            stage.options["black_level"] = black_levels([p])[0]
-            r = stage(s["image_f1"][None].float(), s["image_f2"][None].float(), 1.0 / (1.0 / ref[i])[None, None],
-                      conf[i][None, None])
+            r = stage(s["image_f1"][None].float(), s["image_f2"][None].float(), ref[i][None, None],
+                      conf[i][None, None], black_level=black_levels([p])[0])
             if not bool(r.fitted[0, 0, inner, inner].all()):
                 raise InputError("the stage left interior tiles unfitted")
             row["product_q"] = (1.0 / r.depth[0, 0, inner, inner].flatten()).tolist()
@@ -213,8 +208,7 @@ def structure_rows(model: DFDModel, stage: LikelihoodStage, scenes: int) -> dict
             i1, i2 = b["image_f1"].float(), b["image_f2"].float()
             with torch.no_grad():
                 depth, conf = model.analyse(i1, i2).depth_map
-            stage.options["black_level"] = black_levels(b["params"])[0]
-            r = stage(i1, i2, depth, conf)
+            r = stage(i1, i2, depth, conf, black_level=black_levels(b["params"])[0])
             true = b["tile_depth"][0, 0].double()
             keep = (true >= near) & (true <= far)
             for key, t in (("true", true), ("model", depth[0, 0]), ("model_conf", conf[0, 0]), ("fused", r.depth[0, 0]),
@@ -264,12 +258,12 @@ def stage_timing(model: DFDModel, stage: LikelihoodStage, repeats: int = 3) -> l
     for layout, size in (("plane", (256, 256)), ("slanted", (480, 640))):
         s = textured_scenes(model.camera, model.tile, model.stride, layout, size, BENCH_SEED).batch([0])
         i1, i2 = s["image_f1"].float(), s["image_f2"].float()
-        stage.options["black_level"] = black_levels(s["params"])[0]
+        black = black_levels(s["params"])[0]
         with torch.no_grad():
             depth, conf = model.analyse(i1, i2).depth_map
             t_model, _ = median_time(lambda: model.analyse(i1, i2), repeats, warmup=1)
-        r = stage(i1, i2, depth, conf)
-        t_stage, _ = median_time(lambda: stage(i1, i2, depth, conf), repeats, warmup=0)
+        r = stage(i1, i2, depth, conf, black_level=black)
+        t_stage, _ = median_time(lambda: stage(i1, i2, depth, conf, black_level=black), repeats, warmup=0)
         out.append([f"{layout} {size[0]}x{size[1]}", int(r.fitted.sum()), f"{1000 * t_model:.0f} ms",
                     f"{1000 * t_stage:.0f} ms"])
     return out

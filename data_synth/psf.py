@@ -40,15 +40,10 @@ from typing import Sequence
 import torch
 
 from tdfd.errors import InputError
-from tdfd.optics.psf import (convolve_gaussian, full_conv_1d, gaussian_psf_1d, kernel_size_for,
-                             power_exponential_psf, psf_kernel, sampled_psf)
+from tdfd.optics.psf import (convolve_gaussian, diffraction_pad, diffraction_sigma_px, full_conv_1d, gaussian_psf_1d,
+                             kernel_size_for, power_exponential_psf, psf_kernel, sampled_psf)
 
 __all__ = ["PSFModel", "diffraction_sigma_px", "batch_kernel_fn"]
-
-
-def diffraction_sigma_px(f_number: float, wavelength_m: float, pixel_pitch_m: float) -> float:
-    """RMS radius (px) of the Gaussian approximation of the Airy pattern: ``0.42 lambda N / pitch``."""
-    return 0.42 * wavelength_m * f_number / pixel_pitch_m
 
 
 def _kurtosis(beta: float) -> float:
@@ -102,9 +97,8 @@ class PSFModel:
 
     @property
     def diffraction_pad(self) -> int:
-        """Half-size of the diffraction kernel (:func:`tdfd.optics.psf.kernel_size_for` of its
-        sigma; 0 if none)."""
-        return kernel_size_for(self.diffraction_sigma_px) // 2 if self.diffraction_sigma_px > 0 else 0
+        """Half-size of the diffraction kernel (:func:`tdfd.optics.psf.diffraction_pad`)."""
+        return diffraction_pad(self.diffraction_sigma_px)
 
     def kernel_size(self, sigma_max: float) -> int:
         """Odd kernel side that holds the PSF of RMS radius ``sigma_max``: the library's rule

@@ -61,14 +61,13 @@ def collect_stage_errors(model: DFDModel, planes: int, scenes: int) -> dict[str,
     near, far = model.camera.depth_range_m
     out: dict[str, list[torch.Tensor]] = {k: [] for k in ("fit_error", "fit_sigma", "model_error", "model_sigma",
                                                           "slope", "set")}
+    stage = LikelihoodStage.for_model(model)  # raw sigmas: the factors are what this fits
     for k, (name, ds, count, _) in enumerate(calibration_scene_sets(model, planes, scenes)):
         for i in tqdm(range(count), desc=f"likelihood stage: {name}", mininterval=10.0):
             s = ds.batch([i])
             i1, i2 = s["image_f1"].float(), s["image_f2"].float()
             depth, conf = model.analyse(i1, i2).depth_map
-            (black,) = black_levels(s["params"])
-            stage = LikelihoodStage.for_model(model, black_level=black)
-            r = stage(i1, i2, depth, conf)
+            r = stage(i1, i2, depth, conf, black_level=black_levels(s["params"])[0])
             true = s["tile_depth"].double()
             keep = r.fitted & (true >= near) & (true <= far) & torch.isfinite(r.sigma_fit)
             out["fit_error"].append(r.depth_fit.double()[keep] / true[keep] - 1.0)

@@ -41,7 +41,7 @@ import torch
 from ..errors import InputError, ShapeError
 
 __all__ = ["TAPER_FRACTION", "tukey_window", "valid_residual", "cross_residual_nll", "tile_cross_residual_nll",
-           "parabolic_minima", "argmin_parabolic", "independent_bins"]
+           "parabolic_minima", "argmin_parabolic", "independent_bins", "curvature_sigma"]
 
 TAPER_FRACTION = 0.1
 
@@ -287,6 +287,21 @@ def parabolic_minima(nll: torch.Tensor, grid: torch.Tensor) -> tuple[torch.Tenso
     off = torch.where(ok, (0.5 * (a - c) / safe).clamp(-1.0, 1.0), torch.zeros_like(den))
     curvature = torch.where(ok, safe / step ** 2, torch.full_like(den, math.nan))
     return grid[k] + off * step, b, curvature
+
+
+def curvature_sigma(curvature: torch.Tensor, bins: float, noise: torch.Tensor | float = 1.0) -> torch.Tensor:
+    """The standard deviation of each minimum in ``q`` from its curvature (:func:`parabolic_minima`):
+    ``sqrt(noise / (bins * d2 NLL / dq2))`` with ``bins`` the independent bins behind the mean NLL
+    (:func:`independent_bins`) and ``noise`` the NLL's unit (1 for a fit told the noise; the
+    minimum itself for a unit-noise fit); ``inf`` where the curvature is ``nan`` (no weight).
+
+    Example:
+        >>> curvature_sigma(torch.tensor([100.0, float("nan")]), 4.0).tolist()
+        [0.05, inf]
+    """
+    ok = torch.isfinite(curvature)
+    var = noise / (bins * torch.where(ok, curvature, torch.ones_like(curvature)))
+    return torch.where(ok, torch.as_tensor(var).sqrt(), torch.full_like(curvature, math.inf))
 
 
 def argmin_parabolic(nll: torch.Tensor, grid: torch.Tensor) -> tuple[float, float]:

@@ -224,8 +224,10 @@ class LikelihoodStage(nn.Module):
         return cls(model.camera, model.tile, model.stride, model.confidence_scale, **kwargs)
 
     def forward(self, image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torch.Tensor,
-                confidence: torch.Tensor) -> LikelihoodStageResult:
+                confidence: torch.Tensor, black_level: float | None = None) -> LikelihoodStageResult:
+        """:func:`likelihood_stage` of one batch; ``black_level`` replaces the bound one for this call."""
+        options = self.options if black_level is None else {**self.options, "black_level": float(black_level)}
         with torch.no_grad():
             return likelihood_stage(image_f1, image_f2, depth, confidence, self.camera, tile=self.tile,
                                     stride=self.stride, confidence_scale=self.confidence_scale, scales=self.scales,
-                                    hypotheses=self.hypotheses, **self.options)
+                                    hypotheses=self.hypotheses, **options)

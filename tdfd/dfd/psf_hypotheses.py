@@ -29,7 +29,8 @@ import torch
 
 from ..camera import Camera
 from ..errors import InputError, ShapeError
-from ..optics.psf import PSFShape, convolve_gaussian, kernel_size_for, psf_kernel
+from ..optics.psf import (PSFShape, convolve_gaussian, diffraction_pad, diffraction_sigma_px, kernel_size_for,
+                          psf_kernel)
 
 __all__ = ["SHAPES", "WAVELENGTH_M", "PsfHypothesis", "diffraction_px", "psf_hypotheses"]
 
@@ -38,21 +39,18 @@ __all__ = ["SHAPES", "WAVELENGTH_M", "PsfHypothesis", "diffraction_px", "psf_hyp
 SHAPES: tuple[PSFShape, ...] = ("pillbox", 10.0, 5.0, 1 / 0.3, 2.5, "gaussian")
 #: The wavelength of the diffraction hypothesis (m): a red laser pattern, the paper's assist light.
 WAVELENGTH_M = 650e-9
-#: The factor of the Gaussian approximation of the Airy pattern: RMS radius ``0.42 lambda N``.
-AIRY_RMS = 0.42
 
 
 def diffraction_px(camera: Camera, wavelength_m: float = WAVELENGTH_M) -> float:
     """RMS radius in px of the Gaussian approximation of the Airy pattern at frame 1's working
-    f-number ``N = F1 / A``: ``0.42 lambda N / pitch``.
+    f-number ``N = F1 / A`` (:func:`tdfd.optics.psf.diffraction_sigma_px`).
 
     Raises:
         InputError: a wavelength that is not finite and > 0.
     """
     if not (wavelength_m > 0 and wavelength_m < 1e-3):
         raise InputError(f"wavelength must be in (0, 1 mm), got {wavelength_m} m")
-    f_number = camera.focal_lengths_m[0] / camera.aperture_m
-    return AIRY_RMS * wavelength_m * f_number / camera.pixel_pitch_m
+    return diffraction_sigma_px(camera.focal_lengths_m[0] / camera.aperture_m, wavelength_m, camera.pixel_pitch_m)
 
 
 @dataclass(frozen=True)
@@ -78,8 +76,8 @@ class PsfHypothesis:
 
     @property
     def diffraction_pad(self) -> int:
-        """Half-size of the diffraction kernel (0 without one)."""
-        return kernel_size_for(self.diffraction_px) // 2 if self.diffraction_px > 0 else 0
+        """Half-size of the diffraction kernel (:func:`tdfd.optics.psf.diffraction_pad`)."""
+        return diffraction_pad(self.diffraction_px)
 
     def kernel_size(self, sigma_max: float) -> int:
         """Odd side that holds the PSF of RMS radius ``sigma_max`` px and its diffraction."""

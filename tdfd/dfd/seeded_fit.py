@@ -33,7 +33,7 @@ import torch
 from ..camera import Camera
 from ..errors import InputError, ShapeError
 from ..optics.thin_lens import camera_sigmas
-from .cross_residual import independent_bins, parabolic_minima, tile_cross_residual_nll
+from .cross_residual import curvature_sigma, independent_bins, parabolic_minima, tile_cross_residual_nll
 from .psf_hypotheses import PsfHypothesis
 
 __all__ = ["SEED_WINDOW", "Q_STEP", "PROFILE_TILES", "inverse_depth_grid", "seed_mask", "kernel_side", "SeededFit",
@@ -172,7 +172,5 @@ def seeded_tile_fit(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, origins:
         totals = [float(torch.log(minima(h, chosen)[1].clamp_min(1e-300)).sum()) for h in hypotheses]
         c = min(range(len(hypotheses)), key=totals.__getitem__)
     q, value, curvature = minima(hypotheses[c], every)
-    ok = torch.isfinite(curvature)
-    var = value / (independent_bins(tile, band) * torch.where(ok, curvature, torch.ones_like(curvature)))
-    sigma = torch.where(ok, var.sqrt(), torch.full_like(var, math.inf))
+    sigma = curvature_sigma(curvature, independent_bins(tile, band), value)
     return SeededFit(q=q, sigma_q=sigma, noise=value, hypothesis=hypotheses[c])

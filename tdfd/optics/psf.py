@@ -52,6 +52,8 @@ __all__ = [
     "psf_second_moment",
     "full_conv_1d",
     "convolve_gaussian",
+    "diffraction_sigma_px",
+    "diffraction_pad",
 ]
 
 #: A PSF shape: "gaussian", "pillbox", or a power-exponential exponent ``beta`` >= 1.
@@ -284,3 +286,14 @@ def convolve_gaussian(k: torch.Tensor, sigma_px: float, pad: int) -> torch.Tenso
     g1 = gaussian_psf_1d(torch.tensor([sigma_px], dtype=k.dtype), 2 * pad + 1)
     x = full_conv_1d(full_conv_1d(k, g1[0], -1), g1[0], -2)
     return x / x.sum((-1, -2), keepdim=True)
+
+
+def diffraction_sigma_px(f_number: float, wavelength_m: float, pixel_pitch_m: float) -> float:
+    """RMS radius (px) of the Gaussian approximation of the Airy pattern: ``0.42 lambda N / pitch``."""
+    return 0.42 * wavelength_m * f_number / pixel_pitch_m
+
+
+def diffraction_pad(sigma_px: float) -> int:
+    """Half-size of the kernel of a Gaussian diffraction blur of RMS radius ``sigma_px``
+    (:func:`kernel_size_for` of it; 0 without one): what :func:`convolve_gaussian` grows a PSF by."""
+    return kernel_size_for(sigma_px) // 2 if sigma_px > 0 else 0
