@@ -3,7 +3,7 @@ r"""A likelihood stage after the CNN: each tile's cross-residual fit, seeded by 
 Run from the repository root::
 
     .venv/bin/python -m benchmarks.bench_likelihood_stage [--samples 256] [--world clean,full]
-        [--psf product,shape,known] [--structure 32]
+        [--psf product,shape,known] [--structure 32] [--baseline-scales OLD.likelihood.json]
 
 What a model-based stage adds to the shipped model (section ``likelihood_stage``), on the
 refinement benchmark's planes (0.3-1.0 m) and, for the product stage, on the structure
@@ -14,7 +14,9 @@ benchmark's scenes. Per interior tile of the 64/32 grid
   each frame's black level (a sensor constant), the PSF profiled over every shape with and
   without the diffraction of the working f-number, the noise estimated from the fit, the two
   sigmas' factors from ``models/reference.likelihood.json`` (fitted on training scenes by
-  ``training/fit_likelihood_stage.py``: nothing is fitted on the benchmark);
+  ``training/fit_likelihood_stage.py``: nothing is fitted on the benchmark); with
+  ``--baseline-scales`` the same fits are also fused with another scales file (an A/B of the
+  fusion, e.g. with and without the model's bias removed, on the very same fits);
 - ``shape`` and ``known``, oracles: the seeded fit of
   :func:`tdfd.dfd.cross_residual.tile_cross_residual_nll` within
   :data:`~tdfd.dfd.seeded_fit.SEED_WINDOW` of the model's inverse depth, the PSF's shape
@@ -56,7 +58,7 @@ from benchmarks.bench_tile_oracle import SEED_WINDOW, interior_origins, profile_
 from benchmarks.report import ROOT, comma_choices, machine, markdown_table, median_time, update_section
 from tdfd.dfd.cross_residual import curvature_sigma, independent_bins
 from tdfd.dfd.inverse_variance import LikelihoodScales, fuse, model_sigma, sigma_factor
-from tdfd.dfd.likelihood_stage import LikelihoodStage
+from tdfd.dfd.likelihood_stage import LikelihoodStage, LikelihoodStageResult, fuse_with_fit
 from tdfd.dfd.seeded_fit import seed_mask
 from data_synth import DefocusPairDataset
 from tdfd.errors import InputError
@@ -65,7 +67,7 @@ from training.config import EvalConfig
 from training.data import STRUCTURE_LAYOUTS, textured_scenes
 from training.fit_likelihood_stage import black_levels
 
-__all__ = ["seeded_fit", "paired_bootstrap", "main"]
+__all__ = ["seeded_fit", "paired_bootstrap", "refused", "main"]
 
 
 def seeded_fit(nll: torch.Tensor, grid: torch.Tensor, seed_q: torch.Tensor, bins: float,
@@ -108,11 +110,31 @@ def paired_bootstrap(a: list[list[float]], b: list[list[float]], resamples: int 
     return statistics.mean(diffs), diffs[int(0.025 * resamples)], diffs[int(0.975 * resamples) - 1]
 
 
+def refused(stage: LikelihoodStage, r: LikelihoodStageResult, depth: torch.Tensor, confidence: torch.Tensor,
+            scales: LikelihoodScales) -> tuple[torch.Tensor, torch.Tensor]:
+    """The stage's result for one image ``(1, 1, h, w)`` fused again with other ``scales`` (its
+    fit's own sigma recovered from ``r.sigma_fit``, which carries the stage's fit factor): the
+    fused depth and confidence maps, for an A/B of the fusion on the same fits."""
+    d, c = depth.clone(), confidence.clone()
+    m = r.fitted[0, 0]
+    q_fit = 1.0 / r.depth_fit[0, 0][m].double()
+    slope = r.slope[0, 0][m].double()
+    raw = r.sigma_fit[0, 0][m].double() * q_fit / stage.scales.factors(slope)[0]
+    ii, jj = m.nonzero(as_tuple=True)
+    q, conf, bias = fuse_with_fit(1.0 / depth[0, 0][m].double(),
+                                  model_sigma(confidence[0, 0][m].double(), stage.confidence_scale), q_fit, raw, slope,
+                                  scales, stage.confidence_scale, ii, jj, tuple(m.shape))
+    d[0, 0] = (d[0, 0].double() * torch.exp(bias)).to(d.dtype)
+    d[0, 0][m], c[0, 0][m] = (1.0 / q).to(d.dtype), conf.to(c.dtype)
+    return d, c
+
+
 def run_world(world: str, samples: int, model: DFDModel, modes: tuple[str, ...] = ("known", "shape"),
-              stage: LikelihoodStage | None = None) -> list[dict]:
+              stage: LikelihoodStage | None = None, baseline: LikelihoodScales | None = None) -> list[dict]:
     """Every plane's interior tiles: true ``q``, the model's ``q`` and sigma, per oracle mode the
     seeded fit's ``q`` and sigma (relative), and with ``stage`` the product stage's fused ``q``
-    (``product_q``) and its own fit's (``product_fit_q``), told only the frames' black level."""
+    (``product_q``) and its own fit's (``product_fit_q``), told only the frames' black level;
+    with ``baseline`` also the same fits fused with those scales (``baseline_q``)."""
     over = CLEAN_WORLD if world == "clean" else {}
     camera = model.camera
     n = (256 - TILE) // STRIDE + 1
@@ -142,6 +164,9 @@ def run_world(world: str, samples: int, model: DFDModel, modes: tuple[str, ...] 
                 raise InputError("the stage left interior tiles unfitted")
             row["product_q"] = (1.0 / r.depth[0, 0, inner, inner].flatten()).tolist()
             row["product_fit_q"] = (1.0 / r.depth_fit[0, 0, inner, inner].flatten()).tolist()
+            if baseline is not None:
+                d_b, _ = refused(stage, r, ref[i][None, None], conf[i][None, None], baseline)
+                row["baseline_q"] = (1.0 / d_b[0, 0, inner, inner].flatten()).tolist()
         base = psf_model(p)
         for mode in modes:
             cands = [base] if mode == "known" else [replace(base, shape=sh) for sh in SHAPE_GRID]
@@ -152,13 +177,14 @@ def run_world(world: str, samples: int, model: DFDModel, modes: tuple[str, ...] 
     return rows
 
 
-def score_product(rows: list[dict]) -> dict[str, list[list[float]]]:
+def score_product(rows: list[dict], fused: str = "product_q") -> dict[str, list[list[float]]]:
     """Per plane, the relative depth errors of the model, the product stage's own fit and its
-    fused map (its sigma factors fitted on training scenes: nothing fitted here)."""
+    fused map (its sigma factors fitted on training scenes: nothing fitted here; ``fused``: the
+    row's key of the fused map)."""
     out: dict[str, list[list[float]]] = {"model": [], "seeded": [], "fused": []}
     for r in rows:
         qt = torch.tensor(r["true_q"], dtype=torch.float64)
-        for key, name in (("model", "model_q"), ("seeded", "product_fit_q"), ("fused", "product_q")):
+        for key, name in (("model", "model_q"), ("seeded", "product_fit_q"), ("fused", fused)):
             out[key].append((qt / torch.tensor(r[name], dtype=torch.float64) - 1.0).tolist())
     return out
 
@@ -190,19 +216,21 @@ def score(rows: list[dict], mode: str) -> dict[str, list[list[float]]]:
     return out
 
 
-def structure_rows(model: DFDModel, stage: LikelihoodStage, scenes: int) -> dict[str, dict[str, torch.Tensor]]:
+def structure_rows(model: DFDModel, stage: LikelihoodStage, scenes: int, baseline: LikelihoodScales | None = None
+                   ) -> dict[str, dict[str, torch.Tensor]]:
     """Per layout of :data:`training.data.STRUCTURE_LAYOUTS`, the first ``scenes`` 480x640 scenes
     of the structure benchmark (seed :data:`benchmarks.bench_structure.STRUCTURE_SEED`): every tile
     in the working range with its true depth, the model's depth and confidence, the stage's fused
     depth and confidence and its own fit, whether it was fitted and whether it lies near an
-    occlusion edge (:func:`benchmarks.depth_edges.edge_tiles`), and its scene."""
+    occlusion edge (:func:`benchmarks.depth_edges.edge_tiles`), and its scene; with ``baseline``
+    also the same fits fused with those scales (``base``, ``base_conf``)."""
     near, far = model.camera.depth_range_m
     out = {}
     for layout in STRUCTURE_LAYOUTS:
         ds = textured_scenes(model.camera, model.tile, model.stride, layout, (480, 640), STRUCTURE_SEED)
         acc: dict[str, list[torch.Tensor]] = {k: [] for k in ("true", "model", "model_conf", "fused", "fused_conf",
                                                              "fit", "fitted", "edge", "spread", "fit_sigma",
-                                                             "scene")}
+                                                             "scene", "base", "base_conf")}
         for i in tqdm(range(scenes), desc=f"likelihood stage: {layout}", mininterval=10.0):
             b = ds.batch([i])
             i1, i2 = b["image_f1"].float(), b["image_f2"].float()
@@ -211,6 +239,10 @@ def structure_rows(model: DFDModel, stage: LikelihoodStage, scenes: int) -> dict
             r = stage(i1, i2, depth, conf, black_level=black_levels(b["params"])[0])
             true = b["tile_depth"][0, 0].double()
             keep = (true >= near) & (true <= far)
+            if baseline is not None:
+                d_b, c_b = refused(stage, r, depth, conf, baseline)
+                acc["base"].append(d_b[0, 0][keep].double())
+                acc["base_conf"].append(c_b[0, 0][keep].double())
             for key, t in (("true", true), ("model", depth[0, 0]), ("model_conf", conf[0, 0]), ("fused", r.depth[0, 0]),
                            ("fused_conf", r.confidence[0, 0]), ("fit", r.depth_fit[0, 0]), ("fitted", r.fitted[0, 0]),
                            ("edge", edge_tiles(b["depth"][0, 0], model.tile, model.stride)),
@@ -218,7 +250,7 @@ def structure_rows(model: DFDModel, stage: LikelihoodStage, scenes: int) -> dict
                            ("fit_sigma", r.sigma_fit[0, 0])):
                 acc[key].append(t[keep].double() if t.dtype != torch.bool else t[keep])
             acc["scene"].append(torch.full((int(keep.sum()),), i))
-        out[layout] = {k: torch.cat(v) for k, v in acc.items()}
+        out[layout] = {k: torch.cat(v) for k, v in acc.items() if v}
     return out
 
 
@@ -226,7 +258,8 @@ def structure_table(rows: dict[str, dict[str, torch.Tensor]], reps: int = 200) -
     """Per layout and tile set (away from edges, all): the model's and the fused map's median
     error, on the fitted tiles the stage's own fit's and the model's, the fused - model difference
     with its 95 % interval over a bootstrap of the scenes,
-    the share at confidence >= 0.5 and the median error there (model / fused)."""
+    the share at confidence >= 0.5 and the median error there (model / fused), and where the rows
+    carry a baseline fusion (``base``) its median error, share and median there."""
     table = []
     for layout, t in rows.items():
         for label, sel in (("away from edges", ~t["edge"]), ("all tiles", torch.ones_like(t["edge"]))):
@@ -248,6 +281,15 @@ def structure_table(rows: dict[str, dict[str, torch.Tensor]], reps: int = 200) -
                           f"{100 * (float(e_f.median()) - float(e_m.median())):+.2f} ({100 * diffs[int(0.025 * reps)]:+.2f} "
                           f".. {100 * diffs[int(0.975 * reps) - 1]:+.2f})",
                           f"{share(conf_m)} / {share(conf_f)}", f"{med(e_m, conf_m)} / {med(e_f, conf_f)}"])
+            if "base" in t:
+                e_b = (t["base"][sel] / t["true"][sel] - 1).abs()
+                conf_b = t["base_conf"][sel] >= 0.5
+                d_b = sorted(float(e_f[ix].median() - e_b[ix].median())
+                             for ix in resample_scenes(scene, reps, torch.Generator().manual_seed(0)))
+                table[-1] += [f"{100 * float(e_b.median()):.2f} %",
+                              f"{100 * (float(e_f.median()) - float(e_b.median())):+.2f} "
+                              f"({100 * d_b[int(0.025 * reps)]:+.2f} .. {100 * d_b[int(0.975 * reps) - 1]:+.2f})",
+                              share(conf_b), med(e_b, conf_b)]
     return table
 
 
@@ -277,6 +319,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="comma list of: product (the tdfd stage, PSF and noise not told), shape, known (oracles)")
     p.add_argument("--model", default=str(ROOT / "models" / "reference"))
     p.add_argument("--scales", default="", help="the product stage's sigma factors (default: MODEL.likelihood.json)")
+    p.add_argument("--baseline-scales", default="",
+                   help="also fuse the stage's fits with these scales (an A/B of the fusion on the same fits)")
     p.add_argument("--structure", type=int, default=32, help="structure scenes per layout for the tdfd stage (0: none)")
     p.add_argument("--no-write", action="store_true", help="print only; leave docs/ alone")
     p.add_argument("--rows", default="", help="also save every plane's and structure tile's figures (torch.save)")
@@ -289,19 +333,26 @@ def main(argv: list[str] | None = None) -> int:
     model = DFDModel.load(args.model)
     scales = LikelihoodScales.load(args.scales or f"{args.model}.likelihood.json")
     stage = LikelihoodStage.for_model(model, scales=scales) if "product" in modes else None
+    baseline = LikelihoodScales.load(args.baseline_scales) if args.baseline_scales and stage is not None else None
     oracles = tuple(m for m in modes if m != "product")
     med = statistics.median
     pct = lambda x: f"{100 * x:.2f} %"  # noqa: E731
     table, lines = [], []
-    labels = {"product": "tdfd stage: PSF profiled over every shape and diffraction, noise not told",
-              "shape": "oracle: PSF shape profiled", "known": "oracle: PSF known"}
+    labels = {"product": "tdfd stage: PSF profiled over every shape and diffraction, noise not told"
+                         + ((", the model's bias removed" + (f" (within {scales.bias_radius} tiles)"
+                                                            if scales.bias_radius else " (image-wide)"))
+                            if scales.shared_bias else ""),
+              "shape": "oracle: PSF shape profiled", "known": "oracle: PSF known",
+              "baseline": f"the same fits fused with `{args.baseline_scales}`"
+                          + (" (the model's bias removed)" if baseline is not None and baseline.shared_bias
+                             else " (the model's map as it is)")}
     t0 = time.perf_counter()
     saved: dict[str, list[dict]] = {}
     for world in worlds:
-        rows = run_world(world, args.samples, model, oracles, stage)
+        rows = run_world(world, args.samples, model, oracles, stage, baseline)
         saved[world] = rows
-        for mode in modes:
-            sc = score_product(rows) if mode == "product" else score(rows, mode)
+        for mode in list(modes) + (["baseline"] if baseline is not None else []):
+            sc = score_product(rows, f"{mode}_q") if mode in ("product", "baseline") else score(rows, mode)
             tile = {k: med(abs(x) for pl in v for x in pl) for k, v in sc.items()}
             plane = {k: med(abs(med(pl)) for pl in v) for k, v in sc.items()}
             table.append([world, labels[mode], len(rows)] + [f"{pct(tile[k])} / {pct(plane[k])}" if k in tile else "-"
@@ -311,7 +362,7 @@ def main(argv: list[str] | None = None) -> int:
             lines.append(f"- {world}, {labels[mode]}: fused - model per tile {100 * mt:+.2f} points (95 %: "
                          f"{100 * lo:+.2f} .. {100 * hi:+.2f}), per plane {100 * mp:+.2f} ({100 * plo:+.2f} .. "
                          f"{100 * phi:+.2f})")
-    srows = structure_rows(model, stage, args.structure) if stage and args.structure else {}
+    srows = structure_rows(model, stage, args.structure, baseline) if stage and args.structure else {}
     structure = structure_table(srows) if srows else []
     if args.rows:
         torch.save({"planes": saved, "structure": srows}, args.rows)
@@ -339,16 +390,22 @@ def main(argv: list[str] | None = None) -> int:
                f"{STRUCTURE_SEED}, the whole world, the tiles in the working range; `near an edge`: as in section "
                f"`structure`). Interval: 95 % over 200 bootstrap resamples of the scenes. The last two columns: model "
                f"/ fused.", "",
+               *([f"The last four columns: the same fits fused with `{args.baseline_scales}`: its median error, "
+                  f"the fused map's minus it (95 % over the scenes), its share at confidence >= 0.5 and its median "
+                  f"error there.", ""] if baseline is not None else []),
                markdown_table(["layout", "tiles", "count", "model", "fused", "fitted tiles: fit / model",
-                               "fused - model (points)",
-                               "confidence >= 0.5", "median error there"], structure)] if structure else []),
+                               "fused - model (points)", "confidence >= 0.5", "median error there"]
+                              + (["baseline fused", "fused - baseline (points)", "baseline >= 0.5", "there"]
+                                 if baseline is not None else []),
+                              structure)] if structure else []),
         *(["", "The tdfd stage's cost (median of 3, torch, 2 threads; the model's torch forward beside it):", "",
            markdown_table(["pair", "tiles fitted", "model", "stage"], timing)] if timing else []),
     ])
     print(body)
     if not args.no_write:
         cmd = (f".venv/bin/python -m benchmarks.bench_likelihood_stage --samples {args.samples} --world {args.world} "
-               f"--psf {args.psf} --structure {args.structure}")
+               f"--psf {args.psf} --structure {args.structure}" + (f" --scales {args.scales}" if args.scales else "")
+               + (f" --baseline-scales {args.baseline_scales}" if baseline is not None else ""))
         update_section("likelihood_stage", "A likelihood stage after the CNN, fused by inverse variance (issue 19)",
                        body, cmd)
     return 0

@@ -16,6 +16,7 @@ another camera, is refused; so is a result at full resolution (the stage works o
 
 from __future__ import annotations
 
+import logging
 from dataclasses import replace
 from pathlib import Path
 
@@ -27,6 +28,8 @@ from .dfd.inverse_variance import LikelihoodScales
 from .dfd.likelihood_stage import LikelihoodStage
 from .errors import InputError, ModelError
 from .runtime import DepthResult, DepthRuntime
+
+log = logging.getLogger(__name__)
 
 __all__ = ["stage_for_runtime", "refine_result"]
 
@@ -77,6 +80,9 @@ def refine_result(rt: DepthRuntime, stage: LikelihoodStage, image_f1: np.ndarray
     d = torch.from_numpy(np.asarray(depth, np.float32).reshape(grid).copy())
     c = torch.from_numpy(np.asarray(conf, np.float32).reshape(grid).copy())
     out = stage(torch.from_numpy(a), torch.from_numpy(b), d, c)
+    if stage.scales.shared_bias:
+        log.info("likelihood stage: the model's bias removed, median %s %% in inverse depth per pair",
+                 ", ".join(f"{100 * (np.exp(float(x.median())) - 1):+.2f}" for x in out.bias))
     new_d, new_c = out.depth.numpy().copy(), out.confidence.numpy().copy()
     for k, problem in enumerate(result.problems):  # no DFD pair: keep its map and its confidence 0
         if problem and k < len(new_d):

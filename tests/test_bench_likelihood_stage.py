@@ -78,3 +78,28 @@ def test_the_structure_table_scores_edges_apart_and_bootstraps_scenes():
     assert away[:3] == ["slanted", "away from edges", 30] and every[2] == 40
     assert away[3] == "2.00 %" and away[4] in ("1.00 %", "2.00 %", "3.00 %")
     assert away[7] == "0 % / 100 %" and away[8] == "- / " + away[4]
+
+
+def test_refusing_the_stages_fits_with_its_own_scales_gives_its_map_and_other_scales_another():
+    from benchmarks.bench_likelihood_stage import refused
+    from tdfd import Camera
+    from tdfd.dfd.inverse_variance import LikelihoodScales
+    from tdfd.dfd.likelihood_stage import LikelihoodStage
+
+    from tdfd.dfd.psf_hypotheses import PsfHypothesis
+    from tests.test_likelihood_stage import render_plane
+
+    i1, i2 = render_plane(0.5, PsfHypothesis("gaussian"), size=224, noise=2e-3)
+    g = torch.Generator().manual_seed(4)
+    depth = 0.5 * (1.03 + 0.005 * torch.rand(1, 1, 6, 6, generator=g))  # a model 3 % off
+    conf = torch.full((1, 1, 6, 6), 0.7)
+    scales = LikelihoodScales(2.0, 0.7, shared_bias=True, bias_radius=2)
+    stage = LikelihoodStage(Camera.preset("reference"), 64, 32, 0.01, family="gaussian", scales=scales)
+    r = stage(i1, i2, depth, conf)
+    assert int(r.fitted.sum()) == 16
+    d, c = refused(stage, r, depth, conf, scales)
+    torch.testing.assert_close(d, r.depth, rtol=1e-5, atol=0)
+    torch.testing.assert_close(c, r.confidence, rtol=1e-4, atol=1e-6)
+    d0, _ = refused(stage, r, depth, conf, LikelihoodScales(2.0, 0.7))  # the model's map as it is
+    assert torch.equal(d0[~r.fitted], depth[~r.fitted])
+    assert float(r.bias.abs().min()) > 1e-4 and not torch.allclose(d0, r.depth)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import os
 import subprocess
 import sys
@@ -267,6 +269,16 @@ def test_likelihood_stage_refines_the_map_and_keeps_problems(plane_pairs, shippe
     assert np.array_equal(d0[0], d1[0]) and np.array_equal(d0[:, 0], d1[:, 0])  # the ring: the model's
     assert not np.array_equal(d0[1:-1, 1:-1], d1[1:-1, 1:-1])
     assert abs(float(np.median(d1[1:-1, 1:-1])) - truth) / truth < 0.03
+    # scales that remove the model's bias (within 3 tiles): the ring is the model's without it
+    assert not json.loads(scales.read_text()).get("shared_bias", False)
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--threshold", "0",
+                      "--likelihood-stage", ROOT / "models" / "reference.likelihood-bias.json",
+                      "-o", tmp_path / "bias.npy")
+    assert rc == 0, err
+    d2 = np.load(tmp_path / "bias.npy")
+    ring = np.ones((5, 7), bool)
+    ring[1:-1, 1:-1] = False
+    assert float(np.abs(np.log(d2[ring] / d0[ring])).max()) < 0.05 and not np.array_equal(d1, d2)
     same, _ = _write_pair(tmp_path, f1, f1, "same_stage")
     rc, stdout, err = _run(capsys, same, same, "--model", shipped_onnx, "--white-level", "4095",
                            "--likelihood-stage", scales)

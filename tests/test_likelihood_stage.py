@@ -243,3 +243,94 @@ def test_the_stage_rejects_bad_input_with_typed_errors():
         likelihood_stage(i1, i1, d, c, CAM, black_level=2.0, **kw)
     with pytest.raises(InputError, match="band"):
         LikelihoodStage(CAM, band=0.9)
+
+
+def test_scales_keep_the_shared_bias_flag_and_read_version_1(tmp_path):
+    s = LikelihoodScales((1.5, 3.0), (0.7, 0.6), (0.02,), shared_bias=True)
+    s.save(tmp_path / "s.json")
+    assert json.loads((tmp_path / "s.json").read_text())["format"] == "tdfd.likelihood_scales/2"
+    assert LikelihoodScales.load(tmp_path / "s.json").shared_bias is True
+    LikelihoodScales(2.0, 0.5, shared_bias=True, bias_radius=2).save(tmp_path / "r.json")
+    assert LikelihoodScales.load(tmp_path / "r.json").bias_radius == 2
+    for bad in (0, 1.5, "2"):
+        with pytest.raises(InputError):
+            LikelihoodScales(2.0, 0.5, shared_bias=True, bias_radius=bad)
+    (tmp_path / "v1.json").write_text(json.dumps({"format": "tdfd.likelihood_scales/1", "fit": 2.0, "model": 0.5}))
+    assert LikelihoodScales.load(tmp_path / "v1.json").shared_bias is False
+    (tmp_path / "bad.json").write_text(json.dumps({"format": "tdfd.likelihood_scales/2", "fit": 2.0, "model": 0.5,
+                                                   "shared_bias": "yes"}))
+    with pytest.raises(ModelError):
+        LikelihoodScales.load(tmp_path / "bad.json")
+
+
+def test_the_shared_bias_is_removed_from_the_model_before_the_fusion_and_from_the_ring():
+    depth = 0.55
+    hyp = PsfHypothesis("pillbox")
+    i1, i2 = render_plane(depth, hyp, size=224, noise=5e-3)  # the fit's own sigma about 0.1 %
+    model_d = torch.full((1, 1, 6, 6), depth * 1.03)  # a model 3 % off, sure of itself (0.045 %): a shared bias
+    model_c = torch.full((1, 1, 6, 6), 0.999)
+    plain = LikelihoodStage(CAM, 64, 32, 0.01, family="pillbox", scales=LikelihoodScales(1.0, 1.0))
+    debias = LikelihoodStage(CAM, 64, 32, 0.01, family="pillbox", scales=LikelihoodScales(1.0, 1.0, shared_bias=True))
+    a, b = plain(i1, i2, model_d, model_c), debias(i1, i2, model_d, model_c)
+    inner = b.fitted[0, 0]
+    assert int(inner.sum()) == 16
+    assert a.bias.shape == (1, 1, 6, 6) and bool((a.bias == 0).all())
+    torch.testing.assert_close(b.bias, torch.full_like(b.bias, float(b.bias[0, 0, 0, 0])))  # one for the image
+    assert float(b.bias[0, 0, 0, 0]) == pytest.approx(-math.log(1.03), abs=0.005)
+    torch.testing.assert_close(a.depth_fit, b.depth_fit, equal_nan=True)  # the fit does not see the bias
+    err_a = (a.depth[0, 0][inner] / depth - 1).abs()
+    err_b = (b.depth[0, 0][inner] / depth - 1).abs()
+    assert float(err_a.median()) > 0.015 and float(err_b.max()) < 0.004
+    ring = (b.depth[0, 0][~inner] / depth - 1).abs()
+    assert float(ring.max()) < 0.005 and bool((b.confidence[0, 0][~inner] == model_c[0, 0][~inner]).all())
+
+
+def test_shared_bias_weights_and_typed_errors():
+    from tdfd.dfd.shared_bias import shared_bias, weighted_median
+
+    assert weighted_median(torch.tensor([3.0, 1.0, 2.0]), torch.tensor([1.0, 1.0, 1.0])) == 2.0
+    q = torch.linspace(1.0, 2.0, 10, dtype=torch.float64)
+    q_model = q.clone()
+    q_model[:4] *= 1.05  # four precise tiles say +5 %, six loose ones 0
+    s_m = torch.full((10,), 0.01, dtype=torch.float64)
+    s_f = torch.cat([torch.full((4,), 0.001), torch.full((6,), 0.05)]).to(torch.float64)
+    assert shared_bias(q_model, s_m, q, s_f) == pytest.approx(math.log(1.05))
+    s_f[:4] = math.inf  # no weight: now the loose ones decide, and too few are left
+    assert shared_bias(q_model, s_m, q, s_f) == 0.0
+    assert shared_bias(q_model, s_m, q, s_f, min_tiles=6) == pytest.approx(0.0, abs=1e-15)
+    from tdfd.dfd.shared_bias import bias_map
+
+    rows, cols = torch.arange(10) // 5, torch.arange(10) % 5
+    with pytest.raises(InputError):
+        bias_map(q_model, s_m, q, s_f, rows, cols, (2, 4))  # a column off the grid
+    with pytest.raises(InputError):
+        bias_map(q_model, s_m, q, s_f, rows, cols, (2, 5), radius=0)
+    for bad in ((q_model, s_m, q[:5], s_f), (-q_model, s_m, q, s_f), (q_model, s_m * math.nan, q, s_f),
+                (q_model, -s_m, q, s_f)):
+        with pytest.raises(InputError):
+            shared_bias(*bad)
+    with pytest.raises(InputError):
+        weighted_median(torch.tensor([1.0]), torch.tensor([0.0]))
+
+
+def test_a_bias_radius_removes_each_regions_own_bias():
+    """Two halves of one plane, the model 3 % far on the left and 3 % near on the right: one bias
+    for the image removes one half's, one per neighbourhood both."""
+    depth = 0.55
+    hyp = PsfHypothesis("pillbox")
+    i1, i2 = render_plane(depth, hyp, size=352, noise=5e-3)
+    left = (torch.arange(10) < 5).to(torch.float32)
+    model_d = (depth * (0.97 + 0.06 * left)).expand(1, 1, 10, 10).clone()
+    model_c = torch.full((1, 1, 10, 10), 0.999)
+    whole = LikelihoodStage(CAM, 64, 32, 0.01, family="pillbox",
+                            scales=LikelihoodScales(1.0, 1.0, shared_bias=True))(i1, i2, model_d, model_c)
+    local = LikelihoodStage(CAM, 64, 32, 0.01, family="pillbox",
+                            scales=LikelihoodScales(1.0, 1.0, shared_bias=True, bias_radius=2))(i1, i2, model_d, model_c)
+    inner = local.fitted[0, 0]
+    assert int(inner.sum()) == 64
+    away = inner & ((torch.arange(10) - 4.5).abs() > 2.0)[None, :]  # a radius from the halves' border
+    err_whole = (whole.depth[0, 0][away] / depth - 1).abs()
+    err_local = (local.depth[0, 0][away] / depth - 1).abs()
+    assert float(err_whole.max()) > 0.03 and float(err_local.max()) < 0.005  # one bias fits one half only
+    assert float(local.bias[0, 0, 5, 2]) == pytest.approx(-math.log(1.03), abs=0.005)
+    assert float(local.bias[0, 0, 5, 7]) == pytest.approx(-math.log(0.97), abs=0.005)

@@ -16,6 +16,13 @@ seeds no training run or benchmark uses), every nuisance of the training world o
 told each frame's black level (a sensor constant) and nothing else: PSF profiled over every
 shape (the model's family is unknown), noise not told.
 
+The model's bias, measured against the fit on the fitted tiles within ``--bias-radius`` tiles
+(:data:`BIAS_RADIUS`; 0: over the whole image), is removed before the fusion with
+``--shared-bias`` (:mod:`tdfd.dfd.shared_bias`; measured on the planes and scenes of
+``docs/BENCHMARKS.md``, section ``likelihood_stage``, and not the shipped default): its weights
+need the factors, and the model's factor belongs to the map without it, so the model's factor is
+refitted on the debiased errors :data:`BIAS_ITERATIONS` times.
+
 Writes ``<model>.likelihood.json`` (:class:`tdfd.dfd.inverse_variance.LikelihoodScales`, with the
 command, the scene counts, the tile counts and the medians as provenance).
 """
@@ -33,16 +40,23 @@ from tqdm import tqdm
 
 from tdfd.dfd.inverse_variance import LikelihoodScales, model_sigma, sigma_factor
 from tdfd.dfd.likelihood_stage import LikelihoodStage
+from tdfd.dfd.shared_bias import bias_map
 from tdfd.model import DFDModel
 
 from .calibrate_scale import PLANE_SEED, STRUCTURE_SEED, calibration_scene_sets
 
-__all__ = ["SLOPE_EDGES", "MIN_BAND_TILES", "black_levels", "collect_stage_errors", "fit_scales", "main"]
+__all__ = ["SLOPE_EDGES", "MIN_BAND_TILES", "BIAS_ITERATIONS", "BIAS_RADIUS", "black_levels", "collect_stage_errors",
+           "image_biases", "fit_scales", "main"]
 
 #: the inner edges of the slope bands (:func:`tdfd.dfd.inverse_variance.tile_slope`)
 SLOPE_EDGES = (0.01, 0.03)
 #: the fewest tiles a band's own factors are fitted on
 MIN_BAND_TILES = 100
+#: how often the model's factor is refitted on the errors left after the model's bias
+BIAS_ITERATIONS = 3
+#: the model's bias at a tile is measured on the fitted tiles within this many tiles
+#: (:func:`tdfd.dfd.shared_bias.bias_map`)
+BIAS_RADIUS = 3
 
 logger = logging.getLogger("training.fit_likelihood_stage")
 
@@ -56,11 +70,12 @@ def black_levels(params: list[dict]) -> list[float]:
 def collect_stage_errors(model: DFDModel, planes: int, scenes: int) -> dict[str, torch.Tensor]:
     """The fit's and the model's relative errors (``q_true / q - 1``, the depth's) and raw
     sigmas on every fitted tile in the working range of the calibration scenes; ``set``: 0
-    planes, 1.. the structure layouts."""
+    planes, 1.. the structure layouts; ``image``: the image's running index; ``row``, ``col``:
+    the tile's cell on the grid."""
     model.eval()
     near, far = model.camera.depth_range_m
     out: dict[str, list[torch.Tensor]] = {k: [] for k in ("fit_error", "fit_sigma", "model_error", "model_sigma",
-                                                          "slope", "set")}
+                                                          "slope", "set", "image", "row", "col")}
     stage = LikelihoodStage.for_model(model)  # raw sigmas: the factors are what this fits
     for k, (name, ds, count, _) in enumerate(calibration_scene_sets(model, planes, scenes)):
         for i in tqdm(range(count), desc=f"likelihood stage: {name}", mininterval=10.0):
@@ -76,29 +91,64 @@ def collect_stage_errors(model: DFDModel, planes: int, scenes: int) -> dict[str,
             out["model_sigma"].append(model_sigma(conf.double(), model.confidence_scale)[keep])
             out["slope"].append(r.slope.double()[keep])
             out["set"].append(torch.full((int(keep.sum()),), float(k), dtype=torch.float64))
+            out["image"].append(torch.full((int(keep.sum()),), float(len(out["image"])), dtype=torch.float64))
+            cells = torch.zeros(keep.shape, dtype=torch.float64)
+            rows = cells + torch.arange(keep.shape[-2], dtype=torch.float64)[:, None]
+            out["row"].append(rows[keep])
+            out["col"].append((cells + torch.arange(keep.shape[-1], dtype=torch.float64))[keep])
     return {key: torch.cat(v) for key, v in out.items()}
 
 
-def fit_scales(errors: dict[str, torch.Tensor], slope_edges: tuple[float, ...] = SLOPE_EDGES,
-               min_tiles: int = MIN_BAND_TILES) -> LikelihoodScales:
-    """The factors of :func:`collect_stage_errors`'s tiles, one pair per band of the tiles' slope
-    (a band with fewer than ``min_tiles`` tiles takes the factors of all tiles)."""
-    pooled = (sigma_factor(errors["fit_error"], errors["fit_sigma"]),
-              sigma_factor(errors["model_error"], errors["model_sigma"]))
-    band = LikelihoodScales(slope_edges=slope_edges, fit=(1.0,) * (len(slope_edges) + 1),
-                            model=(1.0,) * (len(slope_edges) + 1)).band(errors["slope"])
-    fit, mod = [], []
-    for k in range(len(slope_edges) + 1):
+def _band_factors(err: torch.Tensor, sig: torch.Tensor, band: torch.Tensor, bands: int, min_tiles: int,
+                  name: str) -> tuple[float, ...]:
+    pooled = sigma_factor(err, sig)
+    out = []
+    for k in range(bands):
         sel = band == k
         if int(sel.sum()) < min_tiles:
-            logger.warning("slope band %d has %d tiles (< %d): it takes the factors of all tiles", k, int(sel.sum()),
-                           min_tiles)
-            fit.append(pooled[0])
-            mod.append(pooled[1])
+            logger.warning("slope band %d has %d tiles (< %d): its %s factor is that of all tiles", k, int(sel.sum()),
+                           min_tiles, name)
+            out.append(pooled)
             continue
-        fit.append(sigma_factor(errors["fit_error"][sel], errors["fit_sigma"][sel]))
-        mod.append(sigma_factor(errors["model_error"][sel], errors["model_sigma"][sel]))
-    return LikelihoodScales(fit=tuple(fit), model=tuple(mod), slope_edges=slope_edges)
+        out.append(sigma_factor(err[sel], sig[sel]))
+    return tuple(out)
+
+
+def image_biases(errors: dict[str, torch.Tensor], fit_factor: torch.Tensor, model_factor: torch.Tensor,
+                 radius: int | None = None) -> torch.Tensor:
+    """``(N,)`` the model's bias at each tile (:func:`tdfd.dfd.shared_bias.bias_map` of its image's
+    scored tiles, ``radius`` as there) with the tiles' factors ``(N,)``, as the stage measures it
+    (``q_model / q_fit = d_fit / d_model``)."""
+    out = torch.zeros_like(errors["model_error"])
+    for img in torch.unique(errors["image"]):
+        sel = errors["image"] == img
+        q_fit, q_model = 1.0 / (1.0 + errors["fit_error"][sel]), 1.0 / (1.0 + errors["model_error"][sel])
+        rows, cols = errors["row"][sel].long(), errors["col"][sel].long()
+        grid = (int(rows.max()) + 1, int(cols.max()) + 1)
+        out[sel] = bias_map(q_model, errors["model_sigma"][sel] * model_factor[sel], q_fit,
+                            errors["fit_sigma"][sel] * fit_factor[sel], rows, cols, grid, radius)[rows, cols]
+    return out
+
+
+def fit_scales(errors: dict[str, torch.Tensor], slope_edges: tuple[float, ...] = SLOPE_EDGES,
+               min_tiles: int = MIN_BAND_TILES, remove_bias: bool = True, bias_radius: int | None = BIAS_RADIUS
+               ) -> LikelihoodScales:
+    """The factors of :func:`collect_stage_errors`'s tiles, one pair per band of the tiles' slope
+    (a band with fewer than ``min_tiles`` tiles takes the factors of all tiles); with
+    ``remove_bias`` the model's factors are those of its errors after the model's bias, measured
+    within ``bias_radius`` tiles (:data:`BIAS_ITERATIONS` refits, the bias's weights from the
+    factors before)."""
+    bands = len(slope_edges) + 1
+    band = LikelihoodScales(slope_edges=slope_edges, fit=(1.0,) * bands, model=(1.0,) * bands).band(errors["slope"])
+    fit = _band_factors(errors["fit_error"], errors["fit_sigma"], band, bands, min_tiles, "fit")
+    mod = _band_factors(errors["model_error"], errors["model_sigma"], band, bands, min_tiles, "model")
+    for _ in range(BIAS_ITERATIONS if remove_bias else 0):
+        b = image_biases(errors, torch.tensor(fit, dtype=torch.float64)[band],
+                         torch.tensor(mod, dtype=torch.float64)[band], bias_radius)
+        debiased = (1.0 + errors["model_error"]) * torch.exp(b) - 1.0
+        mod = _band_factors(debiased, errors["model_sigma"], band, bands, min_tiles, "model")
+    return LikelihoodScales(fit=fit, model=mod, slope_edges=slope_edges, shared_bias=remove_bias,
+                            bias_radius=bias_radius if remove_bias else None)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -107,32 +157,43 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--planes", type=int, default=128, help="textured planes, 256x256")
     p.add_argument("--scenes", type=int, default=6, help="scenes per depth-structure layout, 480x640")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--out", default="", help="the scales file to write (default: MODEL.likelihood.json)")
+    p.add_argument("--shared-bias", action="store_true", help="remove the model's bias, measured against the fit, "
+                                                               "before the fusion (default: the model's map as it is)")
+    p.add_argument("--bias-radius", type=int, default=BIAS_RADIUS,
+                   help="measure the model's bias on the fitted tiles within this many tiles (0: the whole image)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    if args.planes < 1 or args.scenes < 0:
-        p.error("--planes must be >= 1 and --scenes >= 0")
+    if args.planes < 1 or args.scenes < 0 or args.bias_radius < 0:
+        p.error("--planes must be >= 1, --scenes and --bias-radius >= 0")
     torch.set_num_threads(args.threads)
     model = DFDModel.load(args.model)
     t0 = time.perf_counter()
     errors = collect_stage_errors(model, args.planes, args.scenes)
-    fitted = fit_scales(errors)
+    fitted = fit_scales(errors, remove_bias=args.shared_bias, bias_radius=args.bias_radius or None)
     wall = time.perf_counter() - t0
     counts = [int((errors["set"] == k).sum()) for k in range(4)]
     bands = fitted.band(errors["slope"])
+    f_fit, f_model = fitted.factors(errors["slope"])
+    biases = (image_biases(errors, f_fit, f_model, fitted.bias_radius) if fitted.shared_bias
+              else torch.zeros_like(errors["model_error"]))
     provenance = {
         "command": f".venv/bin/python -m training.fit_likelihood_stage --model {args.model} --planes {args.planes} "
-                   f"--scenes {args.scenes}",
+                   f"--scenes {args.scenes}" + (f" --shared-bias --bias-radius {args.bias_radius}" if args.shared_bias
+                                                  else "") + (f" --out {args.out}" if args.out else ""),
         "planes": args.planes, "scenes_per_layout": args.scenes, "plane_seed": PLANE_SEED,
         "structure_seed": STRUCTURE_SEED, "tiles": {"planes": counts[0], "slanted": counts[1], "layout": counts[2],
                                                     "smooth": counts[3]},
         "median_abs_error": {"fit": float(errors["fit_error"].abs().median()),
-                             "model": float(errors["model_error"].abs().median())},
+                             "model": float(errors["model_error"].abs().median()),
+                             "model_without_bias": float(((1.0 + errors["model_error"]) * torch.exp(biases) - 1.0
+                                                          ).abs().median())},
         "tiles_per_slope_band": [int((bands == k).sum()) for k in range(len(fitted.fit))],
         "wall_s": round(wall, 1),
     }
-    path = Path(f"{args.model}.likelihood.json")
+    path = Path(args.out or f"{args.model}.likelihood.json")
     LikelihoodScales(fit=fitted.fit, model=fitted.model, slope_edges=fitted.slope_edges,
-                     provenance=provenance).save(path)
+                     shared_bias=fitted.shared_bias, bias_radius=fitted.bias_radius, provenance=provenance).save(path)
     logger.info("fit sigma factors %s, model sigma factors %s (slope bands at %s, %s tiles) on %d tiles (%s); %.0f s; "
                 "wrote %s", [round(x, 4) for x in fitted.fit], [round(x, 4) for x in fitted.model], fitted.slope_edges,
                 provenance["tiles_per_slope_band"], sum(counts), provenance["tiles"], wall, path)

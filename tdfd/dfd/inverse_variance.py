@@ -33,8 +33,9 @@ __all__ = ["MEDIAN_ABS_NORMAL", "SCALES_FORMAT", "model_sigma", "confidence_from
 
 #: The median of ``|x|`` for a standard normal ``x``.
 MEDIAN_ABS_NORMAL = 0.6744897501960817
-#: The ``format`` of a scales file.
-SCALES_FORMAT = "tdfd.likelihood_scales/1"
+#: The ``format`` of a scales file (version 1, before ``shared_bias``, still loads: without it).
+SCALES_FORMAT = "tdfd.likelihood_scales/2"
+_FORMATS = ("tdfd.likelihood_scales/1", SCALES_FORMAT)
 _TINY = 1e-150  # squares stay above float64's smallest normal
 
 
@@ -121,6 +122,11 @@ class LikelihoodScales:
         fit: factors on the likelihood fit's sigma, one per band (a float: one band).
         model: factors on the model's sigma from its confidence, one per band.
         slope_edges: the increasing inner edges of the bands (``len(fit) - 1`` of them).
+        shared_bias: remove the model's bias, measured against the fit, before the fusion
+            (:mod:`tdfd.dfd.shared_bias`); the ``model`` factors then belong to the map without it.
+        bias_radius: with ``shared_bias``, the bias of each tile is measured on the fitted tiles
+            within this many tiles of it (:func:`~tdfd.dfd.shared_bias.bias_map`); ``None``: one
+            bias for the whole image.
         provenance: how they were fitted (command, data, counts); free-form, saved with them.
 
     Example:
@@ -133,6 +139,8 @@ class LikelihoodScales:
     model: float | tuple[float, ...] = 1.0
     slope_edges: tuple[float, ...] = ()
     provenance: dict[str, Any] = field(default_factory=dict, compare=False)
+    shared_bias: bool = field(default=False, kw_only=True)
+    bias_radius: int | None = field(default=None, kw_only=True)
 
     def __post_init__(self) -> None:
         bands = len(self.slope_edges) + 1
@@ -147,6 +155,10 @@ class LikelihoodScales:
         if any(not (math.isfinite(e) and e > 0) for e in edges) or any(b <= a for a, b in zip(edges, edges[1:])):
             raise InputError(f"slope_edges must be finite, > 0 and increasing, got {self.slope_edges!r}")
         object.__setattr__(self, "slope_edges", edges)
+        if not isinstance(self.shared_bias, bool):
+            raise InputError(f"shared_bias must be a bool, got {self.shared_bias!r}")
+        if self.bias_radius is not None and not (isinstance(self.bias_radius, int) and self.bias_radius >= 1):
+            raise InputError(f"bias_radius must be an int >= 1 (tiles) or None, got {self.bias_radius!r}")
 
     def band(self, slope: torch.Tensor) -> torch.Tensor:
         """Each tile's band index for its slope (``(T,)``, long)."""
@@ -173,10 +185,11 @@ class LikelihoodScales:
             data = json.loads(Path(path).read_text())
         except (OSError, json.JSONDecodeError) as e:
             raise ModelError(f"cannot read likelihood scales from {path}: {e}") from e
-        if not isinstance(data, dict) or data.get("format") != SCALES_FORMAT:
+        if not isinstance(data, dict) or data.get("format") not in _FORMATS:
             raise ModelError(f"{path} is not a {SCALES_FORMAT} file")
         try:
             return cls(fit=data["fit"], model=data["model"], slope_edges=tuple(data.get("slope_edges") or ()),
+                       shared_bias=data.get("shared_bias", False), bias_radius=data.get("bias_radius"),
                        provenance=dict(data.get("provenance") or {}))
         except (KeyError, TypeError, InputError) as e:
             raise ModelError(f"{path}: bad likelihood scales ({e})") from e

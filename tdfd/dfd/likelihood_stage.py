@@ -13,17 +13,22 @@ grid the stage:
    and profiled over the hypotheses (:mod:`tdfd.dfd.psf_hypotheses`: the measured family's
    shape, or every shape, each without and with the diffraction of the working f-number), the
    noise not told (:func:`tdfd.dfd.seeded_fit.seeded_tile_fit`);
-3. fuses the fit with the model by inverse variance, each sigma times its factor for the tile's
+3. with ``scales.shared_bias``, divides the model's map by its bias, measured against the fit
+   over the image or, with ``scales.bias_radius``, over the fitted tiles near each tile
+   (:mod:`tdfd.dfd.shared_bias`: the CNN's error is mostly shared by neighbouring tiles, which a
+   per-tile fusion cannot remove);
+4. fuses the fit with the model by inverse variance, each sigma times its factor for the tile's
    slope in the model's map (the fit assumes a fronto-parallel tile), fitted on training scenes
    (:mod:`tdfd.dfd.inverse_variance`, ``training/fit_likelihood_stage.py``), and
    states the fused sigma as a confidence on the model's scale: a tile the fit adds nothing to
    keeps the model's confidence.
 
 Tiles closer to the frame's edge than a kernel's half-width (where the residual is not valid)
-keep the model's estimate and confidence; so do tiles whose fit has no minimum inside its
-window. The stage models neither breathing nor misregistration nor vignetting: register the
-frames first where they matter (:mod:`tdfd.registration`). Its cost grows with the hypotheses
-(12 without a measured family, 2 with one) and the spread of depths in the frame: see
+keep the model's estimate (without the image's bias, where it is removed) and confidence; so do
+tiles whose fit has no minimum inside its window. The stage models neither breathing nor
+misregistration nor vignetting: register the frames first where they matter
+(:mod:`tdfd.registration`). Its cost grows with the hypotheses (12 without a measured family, 2
+with one) and the spread of depths in the frame: see
 ``docs/BENCHMARKS.md``, section ``likelihood_stage``.
 
 Example:
@@ -54,9 +59,10 @@ from ..errors import InputError, NonFiniteError, ShapeError
 from ..grid import grid_shape
 from .inverse_variance import LikelihoodScales, confidence_from_sigma, fuse, model_sigma, tile_slope
 from .psf_hypotheses import WAVELENGTH_M, PsfHypothesis, psf_hypotheses
+from .shared_bias import bias_map
 from .seeded_fit import PROFILE_TILES, Q_STEP, SEED_WINDOW, inverse_depth_grid, kernel_side, seeded_tile_fit
 
-__all__ = ["LikelihoodStageResult", "valid_tiles", "likelihood_stage", "LikelihoodStage"]
+__all__ = ["LikelihoodStageResult", "valid_tiles", "fuse_with_fit", "likelihood_stage", "LikelihoodStage"]
 
 
 @dataclass
@@ -74,6 +80,8 @@ class LikelihoodStageResult:
         slope: each fitted tile's slope in the model's map
             (:func:`~tdfd.dfd.inverse_variance.tile_slope`; 0 where not fitted), which picks its
             sigma factors.
+        bias: ``(B, 1, h, w)`` float64, the model's bias in ``log q`` removed before the fusion
+            (0 without ``scales.shared_bias``, or with too few fitted tiles).
     """
 
     depth: torch.Tensor
@@ -83,6 +91,7 @@ class LikelihoodStageResult:
     fitted: torch.Tensor
     hypotheses: list[PsfHypothesis]
     slope: torch.Tensor
+    bias: torch.Tensor
 
 
 def valid_tiles(height: int, width: int, tile: int, stride: int, half: int) -> torch.Tensor:
@@ -115,6 +124,40 @@ def _check(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torch.Tensor, 
             raise NonFiniteError(f"{name} has non-finite values")
     if not bool((depth > 0).all()):
         raise InputError("depths must be > 0")
+
+
+def fuse_with_fit(q_model: torch.Tensor, sigma_model: torch.Tensor, q_fit: torch.Tensor, sigma_fit: torch.Tensor,
+                  slope: torch.Tensor, scales: LikelihoodScales, confidence_scale: float, rows: torch.Tensor,
+                  cols: torch.Tensor, grid: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Steps 3-4 of the stage for one image's fitted tiles ``(T,)``: the model's bias removed (with
+    ``scales.shared_bias``) and the inverse-variance fusion.
+
+    Args:
+        q_model: the model's inverse depths (1/m).
+        sigma_model: the model's relative sigma from its confidence, before its factor
+            (:func:`~tdfd.dfd.inverse_variance.model_sigma`).
+        q_fit, sigma_fit: the fit's inverse depths and their sigma (1/m), before its factor.
+        slope: the tiles' slopes in the model's map (which pick the factors).
+        scales: the factors and whether the bias is removed.
+        confidence_scale: the model's ``b0``.
+        rows, cols, grid: the tiles' cells on the ``(h, w)`` tile grid.
+
+    Returns:
+        ``(q, confidence, bias)``: the fused inverse depths, their confidence on the model's
+        scale, and the ``(h, w)`` map of the bias removed from the model's ``log q`` (0 without
+        ``shared_bias``).
+    """
+    f_fit, f_model = scales.factors(slope)
+    s_model = sigma_model.to(torch.float64) * f_model  # relative
+    s_fit = sigma_fit.to(torch.float64) * f_fit  # 1/m
+    q_model = q_model.to(torch.float64)
+    if scales.shared_bias:
+        bias = bias_map(q_model, s_model, q_fit, s_fit / q_fit, rows, cols, grid, scales.bias_radius)
+    else:
+        bias = torch.zeros(grid, dtype=torch.float64)
+    q_model = q_model * torch.exp(-bias[rows, cols])
+    q, s_q = fuse(q_fit, s_fit, q_model, s_model * q_model)
+    return q, confidence_from_sigma(s_q / q / f_model, confidence_scale), bias
 
 
 def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torch.Tensor, confidence: torch.Tensor,
@@ -162,6 +205,7 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
     fit_s = torch.full_like(depth, math.inf)
     slopes = torch.zeros_like(depth)
     chosen = []
+    biases = torch.zeros(depth.shape, dtype=torch.float64)
     for k in range(b):
         if not origins:
             chosen.append(hyps[0])
@@ -173,21 +217,21 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
         y2 = y2 * (m1 / m2)
         seed = 1.0 / depth[k, 0, ii, jj].to(torch.float64)
         slope = tile_slope(1.0 / depth[k, 0].to(torch.float64))[ii, jj]
-        f_fit, f_model = scales.factors(slope)
         fit = seeded_tile_fit(y1, y2, camera, origins, tile, seed, hyps, window=seed_window, step=q_step, band=band,
                               max_kernel=max_kernel, profile_tiles=profile_tiles, profile_by=confidence[k, 0, ii, jj])
-        s_fit = fit.sigma_q * f_fit  # 1/m
-        s_model = sigma_m[k, 0, ii, jj] * f_model * seed  # relative -> 1/m
-        q, s_q = fuse(fit.q, s_fit, seed, s_model)
+        f_fit, _ = scales.factors(slope)
+        q, conf_q, biases[k, 0] = fuse_with_fit(seed, sigma_m[k, 0, ii, jj], fit.q, fit.sigma_q, slope, scales,
+                                                confidence_scale, ii, jj, tuple(depth.shape[-2:]))
+        out_d[k] = (depth[k].to(torch.float64) * torch.exp(biases[k])).to(depth.dtype)  # the ring too
         out_d[k, 0, ii, jj] = (1.0 / q).to(depth.dtype)
-        out_c[k, 0, ii, jj] = confidence_from_sigma(s_q / q / f_model, confidence_scale).to(confidence.dtype)
+        out_c[k, 0, ii, jj] = conf_q.to(confidence.dtype)
         fit_d[k, 0, ii, jj] = (1.0 / fit.q).to(depth.dtype)
-        fit_s[k, 0, ii, jj] = (s_fit / fit.q).to(depth.dtype)
+        fit_s[k, 0, ii, jj] = (fit.sigma_q * f_fit / fit.q).to(depth.dtype)
         slopes[k, 0, ii, jj] = slope.to(depth.dtype)
         chosen.append(fit.hypothesis)
     fitted = torch.zeros_like(depth, dtype=torch.bool)
     fitted[:, 0, ii, jj] = True
-    return LikelihoodStageResult(out_d, out_c, fit_d, fit_s, fitted, chosen, slopes)
+    return LikelihoodStageResult(out_d, out_c, fit_d, fit_s, fitted, chosen, slopes, biases)
 
 
 class LikelihoodStage(nn.Module):
