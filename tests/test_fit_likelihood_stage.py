@@ -46,9 +46,10 @@ def test_the_models_factor_is_that_of_its_errors_without_each_images_bias():
               "row": (torch.arange(tiles) // 8).repeat(images).to(torch.float64),
               "col": (torch.arange(tiles) % 8).repeat(images).to(torch.float64)}
     raw = fit_scales(errors, slope_edges=(), remove_bias=False)
-    debiased = fit_scales(errors, slope_edges=(), bias_radius=None)
+    debiased = fit_scales(errors, slope_edges=(), remove_bias=True, bias_radius=None)
     assert debiased.shared_bias and not raw.shared_bias and debiased.fit == raw.fit
-    assert raw.bias_radius is None and fit_scales(errors, slope_edges=(), bias_radius=2).bias_radius == 2
+    assert raw.bias_radius is None
+    assert fit_scales(errors, slope_edges=(), remove_bias=True, bias_radius=2).bias_radius == 2
     assert raw.model[0] > 2.0  # the shared 3 % against a stated 1 %
     # what is left is the 0.5 % of each tile and the bias's own error (0.7 % / sqrt(40) by tile)
     assert 0.4 < debiased.model[0] < 0.8

@@ -46,7 +46,7 @@ from tdfd.model import DFDModel
 from .calibrate_scale import PLANE_SEED, STRUCTURE_SEED, calibration_scene_sets
 
 __all__ = ["SLOPE_EDGES", "MIN_BAND_TILES", "BIAS_ITERATIONS", "BIAS_RADIUS", "black_levels", "collect_stage_errors",
-           "image_biases", "fit_scales", "main"]
+           "image_biases", "model_error_without_bias", "fit_scales", "main"]
 
 #: the inner edges of the slope bands (:func:`tdfd.dfd.inverse_variance.tile_slope`)
 SLOPE_EDGES = (0.01, 0.03)
@@ -92,10 +92,9 @@ def collect_stage_errors(model: DFDModel, planes: int, scenes: int) -> dict[str,
             out["slope"].append(r.slope.double()[keep])
             out["set"].append(torch.full((int(keep.sum()),), float(k), dtype=torch.float64))
             out["image"].append(torch.full((int(keep.sum()),), float(len(out["image"])), dtype=torch.float64))
-            cells = torch.zeros(keep.shape, dtype=torch.float64)
-            rows = cells + torch.arange(keep.shape[-2], dtype=torch.float64)[:, None]
-            out["row"].append(rows[keep])
-            out["col"].append((cells + torch.arange(keep.shape[-1], dtype=torch.float64))[keep])
+            rows, cols = torch.meshgrid(torch.arange(keep.shape[-2]), torch.arange(keep.shape[-1]), indexing="ij")
+            out["row"].append(rows.expand(keep.shape)[keep].double())
+            out["col"].append(cols.expand(keep.shape)[keep].double())
     return {key: torch.cat(v) for key, v in out.items()}
 
 
@@ -130,8 +129,13 @@ def image_biases(errors: dict[str, torch.Tensor], fit_factor: torch.Tensor, mode
     return out
 
 
+def model_error_without_bias(errors: dict[str, torch.Tensor], biases: torch.Tensor) -> torch.Tensor:
+    """The model's relative depth errors once its bias in ``log q`` (:func:`image_biases`) is removed."""
+    return (1.0 + errors["model_error"]) * torch.exp(biases) - 1.0
+
+
 def fit_scales(errors: dict[str, torch.Tensor], slope_edges: tuple[float, ...] = SLOPE_EDGES,
-               min_tiles: int = MIN_BAND_TILES, remove_bias: bool = True, bias_radius: int | None = BIAS_RADIUS
+               min_tiles: int = MIN_BAND_TILES, remove_bias: bool = False, bias_radius: int | None = BIAS_RADIUS
                ) -> LikelihoodScales:
     """The factors of :func:`collect_stage_errors`'s tiles, one pair per band of the tiles' slope
     (a band with fewer than ``min_tiles`` tiles takes the factors of all tiles); with
@@ -145,8 +149,7 @@ def fit_scales(errors: dict[str, torch.Tensor], slope_edges: tuple[float, ...] =
     for _ in range(BIAS_ITERATIONS if remove_bias else 0):
         b = image_biases(errors, torch.tensor(fit, dtype=torch.float64)[band],
                          torch.tensor(mod, dtype=torch.float64)[band], bias_radius)
-        debiased = (1.0 + errors["model_error"]) * torch.exp(b) - 1.0
-        mod = _band_factors(debiased, errors["model_sigma"], band, bands, min_tiles, "model")
+        mod = _band_factors(model_error_without_bias(errors, b), errors["model_sigma"], band, bands, min_tiles, "model")
     return LikelihoodScales(fit=fit, model=mod, slope_edges=slope_edges, shared_bias=remove_bias,
                             bias_radius=bias_radius if remove_bias else None)
 
@@ -186,8 +189,7 @@ def main(argv: list[str] | None = None) -> int:
                                                     "smooth": counts[3]},
         "median_abs_error": {"fit": float(errors["fit_error"].abs().median()),
                              "model": float(errors["model_error"].abs().median()),
-                             "model_without_bias": float(((1.0 + errors["model_error"]) * torch.exp(biases) - 1.0
-                                                          ).abs().median())},
+                             "model_without_bias": float(model_error_without_bias(errors, biases).abs().median())},
         "tiles_per_slope_band": [int((bands == k).sum()) for k in range(len(fitted.fit))],
         "wall_s": round(wall, 1),
     }

@@ -91,6 +91,12 @@ def shared_bias(q_model: torch.Tensor, sigma_model: torch.Tensor, q_fit: torch.T
         InputError: shapes that differ, inverse depths not finite and > 0, sigmas negative or
             nan, ``min_tiles < 1``.
     """
+    _check(q_model, sigma_model, q_fit, sigma_fit, min_tiles)
+    return _bias(*_log_ratio_and_variance(q_model, sigma_model, q_fit, sigma_fit), min_tiles)
+
+
+def _check(q_model: torch.Tensor, sigma_model: torch.Tensor, q_fit: torch.Tensor, sigma_fit: torch.Tensor,
+           min_tiles: int) -> None:
     if min_tiles < 1:
         raise InputError(f"min_tiles must be >= 1, got {min_tiles}")
     shapes = {tuple(t.shape) for t in (q_model, sigma_model, q_fit, sigma_fit)}
@@ -102,15 +108,24 @@ def shared_bias(q_model: torch.Tensor, sigma_model: torch.Tensor, q_fit: torch.T
     for name, s in (("sigma_model", sigma_model), ("sigma_fit", sigma_fit)):
         if bool(torch.isnan(s).any()) or bool((s < 0).any()):
             raise InputError(f"{name} must be >= 0 (inf: no weight), got nan or negative values")
-    var = sigma_model.to(torch.float64) ** 2 + sigma_fit.to(torch.float64) ** 2
+
+
+def _log_ratio_and_variance(q_model: torch.Tensor, sigma_model: torch.Tensor, q_fit: torch.Tensor,
+                            sigma_fit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``d_t = log(q_model / q_fit)`` and its variance ``s_m^2 + s_f^2`` (float64)."""
+    d = torch.log(q_model.to(torch.float64) / q_fit.to(torch.float64))
+    return d, sigma_model.to(torch.float64) ** 2 + sigma_fit.to(torch.float64) ** 2
+
+
+def _bias(d: torch.Tensor, var: torch.Tensor, min_tiles: int) -> float:
+    """The weighted median of ``d`` over the tiles of finite ``var`` (0 with fewer than ``min_tiles``)."""
     ok = torch.isfinite(var)
     if int(ok.sum()) < min_tiles:
         return 0.0
-    d = torch.log(q_model.to(torch.float64)[ok] / q_fit.to(torch.float64)[ok])
     zero = var[ok] == 0
     # a zero variance: those tiles alone decide
     w = zero.to(torch.float64) if bool(zero.any()) else 1.0 / var[ok].clamp_min(1e-200)
-    b = weighted_median(d, w)
+    b = weighted_median(d[ok], w)
     return b if math.isfinite(b) else 0.0
 
 
@@ -139,6 +154,7 @@ def bias_map(q_model: torch.Tensor, sigma_model: torch.Tensor, q_fit: torch.Tens
         [1.98, 1.98, -2.02, -2.02]
     """
     h, w = int(grid[0]), int(grid[1])
+    _check(q_model, sigma_model, q_fit, sigma_fit, min_tiles)
     if radius is not None and radius < 1:
         raise InputError(f"the bias radius must be >= 1 tile (None: the whole image), got {radius}")
     if rows.shape != q_model.shape or cols.shape != q_model.shape:
@@ -146,14 +162,14 @@ def bias_map(q_model: torch.Tensor, sigma_model: torch.Tensor, q_fit: torch.Tens
     if q_model.numel() and (int(rows.min()) < 0 or int(rows.max()) >= h or int(cols.min()) < 0
                             or int(cols.max()) >= w):
         raise InputError(f"tile positions must lie on the {h}x{w} grid")
-    whole = shared_bias(q_model, sigma_model, q_fit, sigma_fit, min_tiles)
-    out = torch.full((h, w), whole, dtype=torch.float64)
+    d, var = _log_ratio_and_variance(q_model, sigma_model, q_fit, sigma_fit)
+    out = torch.full((h, w), _bias(d, var, min_tiles), dtype=torch.float64)
     if radius is None:
         return out
-    weighted = torch.isfinite(sigma_model.to(torch.float64) ** 2 + sigma_fit.to(torch.float64) ** 2)
+    weighted = torch.isfinite(var)
     for i in range(h):
         for j in range(w):
             near = ((rows - i).abs() <= radius) & ((cols - j).abs() <= radius)
             if int((near & weighted).sum()) >= min_tiles:
-                out[i, j] = shared_bias(q_model[near], sigma_model[near], q_fit[near], sigma_fit[near], min_tiles)
+                out[i, j] = _bias(d[near], var[near], min_tiles)
     return out
