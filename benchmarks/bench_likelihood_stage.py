@@ -32,8 +32,9 @@ fused-minus-model difference with a paired bootstrap over planes (95 % interval)
 ``clean`` switches off breathing, misregistration, vignetting and gain jitter, ``full`` keeps
 them (no estimator here models them). On the structure scenes (480x640, the whole world) the
 product stage is scored on every tile in the working range (its ring keeps the model's
-estimate), away from occlusion edges and all, with a bootstrap over scenes; and its cost is
-timed beside the model's.
+estimate), away from occlusion edges and all, with a bootstrap over scenes
+(:mod:`benchmarks.stage_rows`); its confidence, and the model's, per confidence decile
+(:mod:`benchmarks.stage_uncertainty`); and its cost is timed beside the model's.
 """
 
 from __future__ import annotations
@@ -52,22 +53,22 @@ from benchmarks.bench_bound import STRIDE, TILE, psf_model
 from benchmarks.bench_plane_oracle import CLEAN_WORLD, Q_GRID, SHAPE_GRID, plane_frames
 from benchmarks.bench_refinement import BENCH_SEED, bench_tiles
 from benchmarks.bench_structure import STRUCTURE_SEED
-from benchmarks.depth_edges import edge_tiles, tile_depth_spread
-from benchmarks.uncertainty import resample_scenes
 from benchmarks.bench_tile_oracle import SEED_WINDOW, interior_origins, profile_tiles, tile_nll_stack, tile_noise
 from benchmarks.report import ROOT, comma_choices, machine, markdown_table, median_time, update_section
+from benchmarks.stage_rows import refused, structure_rows, structure_table
+from benchmarks.stage_uncertainty import decile_summary, relative_inverse_depth_error
 from tdfd.dfd.cross_residual import curvature_sigma, independent_bins
 from tdfd.dfd.inverse_variance import LikelihoodScales, fuse, model_sigma, sigma_factor
-from tdfd.dfd.likelihood_stage import LikelihoodStage, LikelihoodStageResult, fuse_with_fit
+from tdfd.dfd.likelihood_stage import LikelihoodStage
 from tdfd.dfd.seeded_fit import seed_mask
 from data_synth import DefocusPairDataset
 from tdfd.errors import InputError
 from tdfd.model import DFDModel
 from training.config import EvalConfig
-from training.data import STRUCTURE_LAYOUTS, textured_scenes
+from training.data import textured_scenes
 from training.fit_likelihood_stage import black_levels
 
-__all__ = ["seeded_fit", "paired_bootstrap", "refused", "main"]
+__all__ = ["seeded_fit", "paired_bootstrap", "run_world", "score_product", "score", "main"]
 
 
 def seeded_fit(nll: torch.Tensor, grid: torch.Tensor, seed_q: torch.Tensor, bins: float,
@@ -110,31 +111,13 @@ def paired_bootstrap(a: list[list[float]], b: list[list[float]], resamples: int 
     return statistics.mean(diffs), diffs[int(0.025 * resamples)], diffs[int(0.975 * resamples) - 1]
 
 
-def refused(stage: LikelihoodStage, r: LikelihoodStageResult, depth: torch.Tensor, confidence: torch.Tensor,
-            scales: LikelihoodScales) -> tuple[torch.Tensor, torch.Tensor]:
-    """The stage's result for one image ``(1, 1, h, w)`` fused again with other ``scales`` (its
-    fit's own sigma recovered from ``r.sigma_fit``, which carries the stage's fit factor): the
-    fused depth and confidence maps, for an A/B of the fusion on the same fits."""
-    d, c = depth.clone(), confidence.clone()
-    m = r.fitted[0, 0]
-    q_fit = 1.0 / r.depth_fit[0, 0][m].double()
-    slope = r.slope[0, 0][m].double()
-    raw = r.sigma_fit[0, 0][m].double() * q_fit / stage.scales.factors(slope)[0]
-    ii, jj = m.nonzero(as_tuple=True)
-    q, conf, bias = fuse_with_fit(1.0 / depth[0, 0][m].double(),
-                                  model_sigma(confidence[0, 0][m].double(), stage.confidence_scale), q_fit, raw, slope,
-                                  scales, stage.confidence_scale, ii, jj, tuple(m.shape))
-    d[0, 0] = (d[0, 0].double() * torch.exp(bias)).to(d.dtype)
-    d[0, 0][m], c[0, 0][m] = (1.0 / q).to(d.dtype), conf.to(c.dtype)
-    return d, c
-
-
 def run_world(world: str, samples: int, model: DFDModel, modes: tuple[str, ...] = ("known", "shape"),
               stage: LikelihoodStage | None = None, baseline: LikelihoodScales | None = None) -> list[dict]:
-    """Every plane's interior tiles: true ``q``, the model's ``q`` and sigma, per oracle mode the
-    seeded fit's ``q`` and sigma (relative), and with ``stage`` the product stage's fused ``q``
-    (``product_q``) and its own fit's (``product_fit_q``), told only the frames' black level;
-    with ``baseline`` also the same fits fused with those scales (``baseline_q``)."""
+    """Every plane's interior tiles: true ``q``, the model's ``q``, sigma and confidence, per oracle
+    mode the seeded fit's ``q`` and sigma (relative), and with ``stage`` the product stage's fused
+    ``q`` and confidence (``product_q``, ``product_conf``) and its own fit's (``product_fit_q``),
+    told only the frames' black level; with ``baseline`` also the same fits fused with those
+    scales (``baseline_q``, ``baseline_conf``)."""
     over = CLEAN_WORLD if world == "clean" else {}
     camera = model.camera
     n = (256 - TILE) // STRIDE + 1
@@ -156,7 +139,8 @@ def run_world(world: str, samples: int, model: DFDModel, modes: tuple[str, ...] 
         needed = seed_mask(Q_GRID, seed)  # only the pairs each tile's window searches
         row = {"index": i, "true_q": (1.0 / true[i][inner, inner].flatten()).tolist(), "model_q": seed.tolist(),
                "model_sigma": model_sigma(conf[i][inner, inner].flatten().clamp(1e-9, 1.0),
-                                          model.confidence_scale).tolist()}
+                                          model.confidence_scale).tolist(),
+               "model_conf": conf[i][inner, inner].flatten().tolist()}
         if stage is not None:
             r = stage(s["image_f1"][None].float(), s["image_f2"][None].float(), ref[i][None, None],
                       conf[i][None, None], black_level=black_levels([p])[0])
@@ -164,9 +148,11 @@ def run_world(world: str, samples: int, model: DFDModel, modes: tuple[str, ...] 
                 raise InputError("the stage left interior tiles unfitted")
             row["product_q"] = (1.0 / r.depth[0, 0, inner, inner].flatten()).tolist()
             row["product_fit_q"] = (1.0 / r.depth_fit[0, 0, inner, inner].flatten()).tolist()
+            row["product_conf"] = r.confidence[0, 0, inner, inner].flatten().tolist()
             if baseline is not None:
-                d_b, _ = refused(stage, r, ref[i][None, None], conf[i][None, None], baseline)
+                d_b, c_b = refused(stage, r, ref[i][None, None], conf[i][None, None], baseline)
                 row["baseline_q"] = (1.0 / d_b[0, 0, inner, inner].flatten()).tolist()
+                row["baseline_conf"] = c_b[0, 0, inner, inner].flatten().tolist()
         base = psf_model(p)
         for mode in modes:
             cands = [base] if mode == "known" else [replace(base, shape=sh) for sh in SHAPE_GRID]
@@ -216,83 +202,6 @@ def score(rows: list[dict], mode: str) -> dict[str, list[list[float]]]:
     return out
 
 
-def structure_rows(model: DFDModel, stage: LikelihoodStage, scenes: int, baseline: LikelihoodScales | None = None
-                   ) -> dict[str, dict[str, torch.Tensor]]:
-    """Per layout of :data:`training.data.STRUCTURE_LAYOUTS`, the first ``scenes`` 480x640 scenes
-    of the structure benchmark (seed :data:`benchmarks.bench_structure.STRUCTURE_SEED`): every tile
-    in the working range with its true depth, the model's depth and confidence, the stage's fused
-    depth and confidence and its own fit, whether it was fitted and whether it lies near an
-    occlusion edge (:func:`benchmarks.depth_edges.edge_tiles`), and its scene; with ``baseline``
-    also the same fits fused with those scales (``base``, ``base_conf``)."""
-    near, far = model.camera.depth_range_m
-    out = {}
-    for layout in STRUCTURE_LAYOUTS:
-        ds = textured_scenes(model.camera, model.tile, model.stride, layout, (480, 640), STRUCTURE_SEED)
-        acc: dict[str, list[torch.Tensor]] = {k: [] for k in ("true", "model", "model_conf", "fused", "fused_conf",
-                                                             "fit", "fitted", "edge", "spread", "fit_sigma",
-                                                             "scene", "base", "base_conf")}
-        for i in tqdm(range(scenes), desc=f"likelihood stage: {layout}", mininterval=10.0):
-            b = ds.batch([i])
-            i1, i2 = b["image_f1"].float(), b["image_f2"].float()
-            with torch.no_grad():
-                depth, conf = model.analyse(i1, i2).depth_map
-            r = stage(i1, i2, depth, conf, black_level=black_levels(b["params"])[0])
-            true = b["tile_depth"][0, 0].double()
-            keep = (true >= near) & (true <= far)
-            if baseline is not None:
-                d_b, c_b = refused(stage, r, depth, conf, baseline)
-                acc["base"].append(d_b[0, 0][keep].double())
-                acc["base_conf"].append(c_b[0, 0][keep].double())
-            for key, t in (("true", true), ("model", depth[0, 0]), ("model_conf", conf[0, 0]), ("fused", r.depth[0, 0]),
-                           ("fused_conf", r.confidence[0, 0]), ("fit", r.depth_fit[0, 0]), ("fitted", r.fitted[0, 0]),
-                           ("edge", edge_tiles(b["depth"][0, 0], model.tile, model.stride)),
-                           ("spread", tile_depth_spread(b["depth"][0, 0], model.tile, model.stride)),
-                           ("fit_sigma", r.sigma_fit[0, 0])):
-                acc[key].append(t[keep].double() if t.dtype != torch.bool else t[keep])
-            acc["scene"].append(torch.full((int(keep.sum()),), i))
-        out[layout] = {k: torch.cat(v) for k, v in acc.items() if v}
-    return out
-
-
-def structure_table(rows: dict[str, dict[str, torch.Tensor]], reps: int = 200) -> list[list]:
-    """Per layout and tile set (away from edges, all): the model's and the fused map's median
-    error, on the fitted tiles the stage's own fit's and the model's, the fused - model difference
-    with its 95 % interval over a bootstrap of the scenes,
-    the share at confidence >= 0.5 and the median error there (model / fused), and where the rows
-    carry a baseline fusion (``base``) its median error, share and median there."""
-    table = []
-    for layout, t in rows.items():
-        for label, sel in (("away from edges", ~t["edge"]), ("all tiles", torch.ones_like(t["edge"]))):
-            e_m = (t["model"][sel] / t["true"][sel] - 1).abs()
-            e_f = (t["fused"][sel] / t["true"][sel] - 1).abs()
-            fitted = sel & t["fitted"]
-            e_fit = (t["fit"][fitted] / t["true"][fitted] - 1).abs()
-            e_mf = (t["model"][fitted] / t["true"][fitted] - 1).abs()
-            scene = t["scene"][sel]
-
-            def difference(e_a: torch.Tensor, e_b: torch.Tensor) -> str:
-                """median(e_a) - median(e_b) in points, with its 95 % interval over the scenes."""
-                diffs = sorted(float(e_a[ix].median() - e_b[ix].median())
-                               for ix in resample_scenes(scene, reps, torch.Generator().manual_seed(0)))
-                return (f"{100 * (float(e_a.median()) - float(e_b.median())):+.2f} "
-                        f"({100 * diffs[int(0.025 * reps)]:+.2f} .. {100 * diffs[int(0.975 * reps) - 1]:+.2f})")
-            conf_m, conf_f = t["model_conf"][sel] >= 0.5, t["fused_conf"][sel] >= 0.5
-            share = lambda c: f"{100 * float(c.double().mean()):.0f} %"  # noqa: E731
-            med = lambda e, c: f"{100 * float(e[c].median()):.2f} %" if bool(c.any()) else "-"  # noqa: E731
-            table.append([layout, label, int(sel.sum()), f"{100 * float(e_m.median()):.2f} %",
-                          f"{100 * float(e_f.median()):.2f} %",
-                          f"{100 * float(e_fit.median()):.2f} % / {100 * float(e_mf.median()):.2f} %"
-                          if e_fit.numel() else "-",
-                          difference(e_f, e_m),
-                          f"{share(conf_m)} / {share(conf_f)}", f"{med(e_m, conf_m)} / {med(e_f, conf_f)}"])
-            if "base" in t:
-                e_b = (t["base"][sel] / t["true"][sel] - 1).abs()
-                conf_b = t["base_conf"][sel] >= 0.5
-                table[-1] += [f"{100 * float(e_b.median()):.2f} %", difference(e_f, e_b), share(conf_b),
-                              med(e_b, conf_b)]
-    return table
-
-
 def stage_timing(model: DFDModel, stage: LikelihoodStage, repeats: int = 3) -> list[list[str]]:
     """Median wall time of the model (torch) and of the stage after it on a 256x256 plane and a
     480x640 slanted scene (each pair's own black level), side by side."""
@@ -308,6 +217,38 @@ def stage_timing(model: DFDModel, stage: LikelihoodStage, repeats: int = 3) -> l
         t_stage, _ = median_time(lambda: stage(i1, i2, depth, conf, black_level=black), repeats, warmup=0)
         out.append([f"{layout} {size[0]}x{size[1]}", int(r.fitted.sum()), f"{1000 * t_model:.0f} ms",
                     f"{1000 * t_stage:.0f} ms"])
+    return out
+
+
+def confidence_rows(planes: dict[str, list[dict]], structure: dict[str, dict[str, torch.Tensor]],
+                    confidence_scale: float, labels: dict[str, str], reps: int = 100) -> list[list[object]]:
+    """The model's, the stage's and the baseline fusion's confidence per decile
+    (:func:`benchmarks.stage_uncertainty.decile_summary`): on each world's planes (interior
+    tiles; the bootstrap draws planes) and on the structure scenes of every layout together, all
+    tiles and away from edges (it draws scenes)."""
+    out = []
+    for world, rows in planes.items():
+        scene = torch.cat([torch.full((len(r["true_q"]),), r["index"]) for r in rows])
+        true = torch.tensor([x for r in rows for x in r["true_q"]], dtype=torch.float64)
+        for key, name in (("model", "model"), ("product", "product"), ("baseline", "baseline")):
+            if f"{key}_conf" not in rows[0]:
+                continue
+            q = torch.tensor([x for r in rows for x in r[f"{key}_q"]], dtype=torch.float64)
+            conf = torch.tensor([x for r in rows for x in r[f"{key}_conf"]], dtype=torch.float64)
+            out.append([f"planes, {world}", labels[name], int(q.numel())]
+                       + decile_summary(conf, relative_inverse_depth_error(1.0 / q, 1.0 / true), scene,
+                                        confidence_scale, reps))
+    if structure:
+        cat = {k: torch.cat([t[k] for t in structure.values()]) for k in next(iter(structure.values()))}
+        scene = torch.cat([t["scene"] + k * 1_000_000 for k, t in enumerate(structure.values())])
+        for label, sel in (("all tiles", torch.ones_like(cat["edge"])), ("away from edges", ~cat["edge"])):
+            for key, ckey, name in (("model", "model_conf", "model"), ("fused", "fused_conf", "product"),
+                                    ("base", "base_conf", "baseline")):
+                if key not in cat:
+                    continue
+                err = relative_inverse_depth_error(cat[key][sel], cat["true"][sel])
+                out.append([f"structure scenes, {label}", labels[name], int(sel.sum())]
+                           + decile_summary(cat[ckey][sel], err, scene[sel], confidence_scale, reps))
     return out
 
 
@@ -364,6 +305,8 @@ def main(argv: list[str] | None = None) -> int:
                          f"{100 * phi:+.2f})")
     srows = structure_rows(model, stage, args.structure, baseline) if stage and args.structure else {}
     structure = structure_table(srows) if srows else []
+    calibration = (confidence_rows(saved, srows, model.confidence_scale, {**labels, "model": "the model"})
+                   if stage is not None else [])
     if args.rows:
         torch.save({"planes": saved, "structure": srows}, args.rows)
     wall = time.perf_counter() - t0
@@ -398,6 +341,11 @@ def main(argv: list[str] | None = None) -> int:
                               + (["baseline fused", "fused - baseline (points)", "baseline >= 0.5", "there"]
                                  if baseline is not None else []),
                               structure)] if structure else []),
+        *(["", "The confidence as an uncertainty (issue 19: observed / predicted median error within 20 % in every "
+               "confidence decile; the deciles and the bootstrap of section `uncertainty`, 100 resamples of the "
+               "planes or scenes; the stage states its fused sigma on the model's scale):", "",
+           markdown_table(["tiles", "confidence of", "count", "deciles within 20 %", "outside by > 2 s.e.",
+                           "ratio range", "worst ratio"], calibration)] if calibration else []),
         *(["", "The tdfd stage's cost (median of 3, torch, 2 threads; the model's torch forward beside it):", "",
            markdown_table(["pair", "tiles fitted", "model", "stage"], timing)] if timing else []),
     ])

@@ -1,6 +1,6 @@
 """The likelihood-stage benchmark's own pieces (benchmarks/bench_likelihood_stage.py): the oracle's
-seeded fit's minimum and curvature sigma, and the paired bootstrap (the product stage's pieces:
-tests/test_likelihood_stage.py)."""
+seeded fit's minimum and curvature sigma, the paired bootstrap, the structure table, the re-fusion
+with other scales and the confidence's deciles (the product stage's pieces: tests/test_likelihood_stage.py)."""
 
 from __future__ import annotations
 
@@ -63,7 +63,7 @@ def test_product_scores_are_relative_depth_errors_per_plane():
 
 
 def test_the_structure_table_scores_edges_apart_and_bootstraps_scenes():
-    from benchmarks.bench_likelihood_stage import structure_table
+    from benchmarks.stage_rows import structure_table
 
     n = 40
     true = torch.full((n,), 0.5, dtype=torch.float64)
@@ -81,7 +81,7 @@ def test_the_structure_table_scores_edges_apart_and_bootstraps_scenes():
 
 
 def test_refusing_the_stages_fits_with_its_own_scales_gives_its_map_and_other_scales_another():
-    from benchmarks.bench_likelihood_stage import refused
+    from benchmarks.stage_rows import refused
     from tdfd import Camera
     from tdfd.dfd.inverse_variance import LikelihoodScales
     from tdfd.dfd.likelihood_stage import LikelihoodStage
@@ -103,3 +103,60 @@ def test_refusing_the_stages_fits_with_its_own_scales_gives_its_map_and_other_sc
     d0, _ = refused(stage, r, depth, conf, LikelihoodScales(2.0, 0.7))  # the model's map as it is
     assert torch.equal(d0[~r.fitted], depth[~r.fitted])
     assert float(r.bias.abs().min()) > 1e-4 and not torch.allclose(d0, r.depth)
+
+
+def _laplace_tiles(n: int, factor: float, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Confidences (b0 = 0.01) and signed errors ``factor`` times the Laplace errors they state."""
+    g = torch.Generator().manual_seed(seed)
+    b = 0.002 + 0.05 * torch.rand(n, generator=g, dtype=torch.float64)
+    u = torch.rand(n, generator=g, dtype=torch.float64) - 0.5
+    return 1.0 / (1.0 + (b / 0.01) ** 2), -factor * b * torch.sign(u) * torch.log1p(-2.0 * u.abs())
+
+
+def test_the_decile_summary_passes_a_stated_uncertainty_and_fails_one_half_too_small():
+    from benchmarks.stage_uncertainty import decile_summary
+
+    conf, err = _laplace_tiles(6000, 1.0, 0)
+    scene = torch.arange(6000) // 30
+    good = decile_summary(conf, err, scene, 0.01, reps=20)
+    assert good[0] == "10 of 10" and good[1] == 0
+    conf, err = _laplace_tiles(6000, 1.5, 1)  # errors 1.5 times what the confidence states
+    bad = decile_summary(conf, err, scene, 0.01, reps=20)
+    assert bad[0] == "0 of 10" and bad[1] >= 8  # most outside the band by more than two standard errors
+    lo, hi = (float(x) for x in bad[2].split("-"))
+    assert 1.25 < lo <= hi < 1.8 and bad[3].endswith(")")
+
+
+def test_the_relative_inverse_depth_error_and_its_typed_errors():
+    from benchmarks.stage_uncertainty import relative_inverse_depth_error
+
+    e = relative_inverse_depth_error(torch.tensor([0.5, 0.4]), torch.tensor([0.55, 0.4]))
+    torch.testing.assert_close(e, torch.tensor([0.1, 0.0], dtype=torch.float64))  # q / q_true - 1
+    with pytest.raises(InputError, match="shape"):
+        relative_inverse_depth_error(torch.ones(2), torch.ones(3))
+    with pytest.raises(InputError, match="depth must be finite and > 0"):
+        relative_inverse_depth_error(torch.tensor([0.5, 0.0]), torch.ones(2))
+
+
+def test_confidence_rows_score_each_estimator_on_planes_and_structure_scenes():
+    from benchmarks.bench_likelihood_stage import confidence_rows
+
+    conf, err = _laplace_tiles(2500, 1.0, 2)
+    q_true = torch.full((2500,), 2.0, dtype=torch.float64)
+    q = q_true * (1.0 + err)
+    planes = {"clean": [{"index": i, "true_q": q_true[25 * i:25 * i + 25].tolist(),
+                         "model_q": q[25 * i:25 * i + 25].tolist(), "model_conf": conf[25 * i:25 * i + 25].tolist(),
+                         "product_q": q[25 * i:25 * i + 25].tolist(),
+                         "product_conf": (conf[25 * i:25 * i + 25] ** 4).tolist()}  # far less confident
+                        for i in range(100)]}
+    structure = {lay: {"true": 1.0 / q_true[:1000], "model": 1.0 / q[:1000], "model_conf": conf[:1000],
+                       "fused": 1.0 / q[:1000], "fused_conf": conf[:1000], "edge": torch.arange(1000) % 4 == 0,
+                       "scene": torch.arange(1000) // 50} for lay in ("slanted", "layout")}
+    labels = {"model": "the model", "product": "stage", "baseline": "base"}
+    rows = confidence_rows(planes, structure, 0.01, labels, reps=10)
+    assert [r[:3] for r in rows] == [["planes, clean", "the model", 2500], ["planes, clean", "stage", 2500],
+                                     ["structure scenes, all tiles", "the model", 2000],
+                                     ["structure scenes, all tiles", "stage", 2000],
+                                     ["structure scenes, away from edges", "the model", 1500],
+                                     ["structure scenes, away from edges", "stage", 1500]]
+    assert rows[0][3] == "10 of 10" and rows[1][3] != "10 of 10"  # the understated confidence is caught

@@ -213,6 +213,13 @@ def test_the_stage_refines_the_interior_and_keeps_the_ring():
     assert bool((r.confidence[0, 0][~inner] == model_c[0, 0][~inner]).all())
     assert bool(torch.isnan(r.depth_fit[0, 0][~inner]).all()) and bool(torch.isinf(r.sigma_fit[0, 0][~inner]).all())
     assert r.hypotheses == [hyp]
+    # the fit's own sigma, before the factor, is kept beside the factored one
+    assert r.sigma_fit_raw.dtype == torch.float64 and bool(torch.isinf(r.sigma_fit_raw[0, 0][~inner]).all())
+    scaled = LikelihoodStage(CAM, 64, 32, 0.01, family="pillbox", black_level=0.05,
+                             scales=LikelihoodScales(2.5, 0.7))(i1, i2, model_d, model_c)
+    torch.testing.assert_close(scaled.sigma_fit_raw, r.sigma_fit_raw, rtol=0, atol=0)
+    torch.testing.assert_close(scaled.sigma_fit[0, 0][inner].double(), 2.5 * r.sigma_fit_raw[0, 0][inner],
+                               rtol=1e-6, atol=0)
     # the black level given per call is the bound one
     per_call = LikelihoodStage(CAM, 64, 32, 0.01, family="pillbox")(i1, i2, model_d, model_c, black_level=0.05)
     assert torch.equal(per_call.depth, r.depth) and torch.equal(per_call.confidence, r.confidence)

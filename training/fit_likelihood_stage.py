@@ -84,9 +84,9 @@ def collect_stage_errors(model: DFDModel, planes: int, scenes: int) -> dict[str,
             depth, conf = model.analyse(i1, i2).depth_map
             r = stage(i1, i2, depth, conf, black_level=black_levels(s["params"])[0])
             true = s["tile_depth"].double()
-            keep = r.fitted & (true >= near) & (true <= far) & torch.isfinite(r.sigma_fit)
+            keep = r.fitted & (true >= near) & (true <= far) & torch.isfinite(r.sigma_fit_raw)
             out["fit_error"].append(r.depth_fit.double()[keep] / true[keep] - 1.0)
-            out["fit_sigma"].append(r.sigma_fit.double()[keep])
+            out["fit_sigma"].append(r.sigma_fit_raw[keep])
             out["model_error"].append(depth.double()[keep] / true[keep] - 1.0)
             out["model_sigma"].append(model_sigma(conf.double(), model.confidence_scale)[keep])
             out["slope"].append(r.slope.double()[keep])

@@ -75,6 +75,9 @@ class LikelihoodStageResult:
         depth_fit: the likelihood fit's own distance (``nan`` where not fitted).
         sigma_fit: the fit's relative standard deviation after its factor (``inf`` where it has
             no weight).
+        sigma_fit_raw: ``(B, 1, h, w)`` float64, the same before its factor (the curvature's), which
+            another :class:`~tdfd.dfd.inverse_variance.LikelihoodScales` can fuse again
+            (:func:`fuse_with_fit`).
         fitted: where the fit was made (bool).
         hypotheses: per image, the PSF it shares.
         slope: each fitted tile's slope in the model's map
@@ -92,6 +95,7 @@ class LikelihoodStageResult:
     hypotheses: list[PsfHypothesis]
     slope: torch.Tensor
     bias: torch.Tensor
+    sigma_fit_raw: torch.Tensor
 
 
 def valid_tiles(height: int, width: int, tile: int, stride: int, half: int) -> torch.Tensor:
@@ -203,6 +207,7 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
     out_d, out_c = depth.clone(), confidence.clone()
     fit_d = torch.full_like(depth, math.nan)
     fit_s = torch.full_like(depth, math.inf)
+    fit_raw = torch.full(depth.shape, math.inf, dtype=torch.float64)
     slopes = torch.zeros_like(depth)
     chosen = []
     biases = torch.zeros(depth.shape, dtype=torch.float64)
@@ -226,12 +231,13 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
         out_d[k, 0, ii, jj] = (1.0 / q).to(depth.dtype)
         out_c[k, 0, ii, jj] = conf_q.to(confidence.dtype)
         fit_d[k, 0, ii, jj] = (1.0 / fit.q).to(depth.dtype)
-        fit_s[k, 0, ii, jj] = (fit.sigma_q * f_fit / fit.q).to(depth.dtype)
+        fit_raw[k, 0, ii, jj] = fit.sigma_q.to(torch.float64) / fit.q.to(torch.float64)
+        fit_s[k, 0, ii, jj] = (fit_raw[k, 0, ii, jj] * f_fit).to(depth.dtype)
         slopes[k, 0, ii, jj] = slope.to(depth.dtype)
         chosen.append(fit.hypothesis)
     fitted = torch.zeros_like(depth, dtype=torch.bool)
     fitted[:, 0, ii, jj] = True
-    return LikelihoodStageResult(out_d, out_c, fit_d, fit_s, fitted, chosen, slopes, biases)
+    return LikelihoodStageResult(out_d, out_c, fit_d, fit_s, fitted, chosen, slopes, biases, fit_raw)
 
 
 class LikelihoodStage(nn.Module):
