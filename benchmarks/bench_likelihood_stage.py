@@ -225,9 +225,12 @@ def confidence_rows(planes: dict[str, list[dict]], structure: dict[str, dict[str
     """The model's, the stage's and the baseline fusion's confidence per decile
     (:func:`benchmarks.stage_uncertainty.decile_summary`): on each world's planes (interior
     tiles; the bootstrap draws planes) and on the structure scenes of every layout together, all
-    tiles and away from edges (it draws scenes)."""
+    tiles and away from edges (it draws scenes). A set of fewer than two planes or scenes, or of
+    fewer than ten tiles, is left out (a short run)."""
     out = []
     for world, rows in planes.items():
+        if len(rows) < 2:
+            continue
         scene = torch.cat([torch.full((len(r["true_q"]),), r["index"]) for r in rows])
         true = torch.tensor([x for r in rows for x in r["true_q"]], dtype=torch.float64)
         for key, name in (("model", "model"), ("product", "product"), ("baseline", "baseline")):
@@ -242,6 +245,8 @@ def confidence_rows(planes: dict[str, list[dict]], structure: dict[str, dict[str
         cat = {k: torch.cat([t[k] for t in structure.values()]) for k in next(iter(structure.values()))}
         scene = torch.cat([t["scene"] + k * 1_000_000 for k, t in enumerate(structure.values())])
         for label, sel in (("all tiles", torch.ones_like(cat["edge"])), ("away from edges", ~cat["edge"])):
+            if int(sel.sum()) < 10 or torch.unique(scene[sel]).numel() < 2:
+                continue
             for key, ckey, name in (("model", "model_conf", "model"), ("fused", "fused_conf", "product"),
                                     ("base", "base_conf", "baseline")):
                 if key not in cat:

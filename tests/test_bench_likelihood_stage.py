@@ -160,3 +160,7 @@ def test_confidence_rows_score_each_estimator_on_planes_and_structure_scenes():
                                      ["structure scenes, away from edges", "the model", 1500],
                                      ["structure scenes, away from edges", "stage", 1500]]
     assert rows[0][3] == "10 of 10" and rows[1][3] != "10 of 10"  # the understated confidence is caught
+    # a short run: one plane and one scene leave no set to score, and no error
+    one = {lay: {k: v[:40] for k, v in t.items()} for lay, t in list(structure.items())[:1]}
+    one[next(iter(one))]["scene"] = torch.zeros(40, dtype=torch.long)
+    assert confidence_rows({"clean": planes["clean"][:1]}, one, 0.01, labels, reps=10) == []
