@@ -37,7 +37,8 @@ from benchmarks.bench_refinement import BENCH_SEED
 from benchmarks.bench_structure import STRUCTURE_SEED, collect_structure
 from benchmarks.depth_models import DepthModel, load_depth_model, predicted_scale
 from benchmarks.report import ROOT, markdown_table, update_section, with_model_option
-from benchmarks.uncertainty import CALIBRATION_TOLERANCE, decile_table, plot_calibration, scene_bootstrap
+from benchmarks.uncertainty import (CALIBRATION_TOLERANCE, decile_table, outside_band, plot_calibration,
+                                   scene_bootstrap, worst_decile)
 from tdfd.model import DFDModel
 from tdfd.model.scale_calibration import tile_border_distance
 from training.calibrate_scale import PLANE_SEED
@@ -113,12 +114,6 @@ def structure_tiles(model: DepthModel, scenes: int, seed: int = STRUCTURE_SEED) 
     return {k: torch.cat([v[k] for v in parts]) for k in parts[0]}
 
 
-def _outside(row: dict) -> bool:
-    """Outside the 20 % band by more than two standard errors."""
-    gap = max(row["ratio"] - (1 + CALIBRATION_TOLERANCE), (1 - CALIBRATION_TOLERANCE) - row["ratio"])
-    return gap > 2 * row["ratio_se"]
-
-
 def _rows(table: list[dict]) -> list[list[object]]:
     return [[k + 1, f"{r['conf_lo']:.3f}-{r['conf_hi']:.3f}", r["tiles"], f"{100 * r['predicted']:.2f} %",
              f"{100 * r['observed']:.2f} %", f"{r['ratio']:.2f} +- {r['ratio_se']:.2f}", f"{100 * r['within']:.0f} %",
@@ -126,8 +121,8 @@ def _rows(table: list[dict]) -> list[list[object]]:
 
 
 def _summary(name: str, table: list[dict]) -> list[object]:
-    worst = max(table, key=lambda r: abs(math.log(r["ratio"])) if 0 < r["ratio"] < math.inf else math.inf)
-    return [name, f"{sum(r['ok'] for r in table)} of {len(table)}", f"{sum(_outside(r) for r in table)}",
+    worst = table[worst_decile(table)]
+    return [name, f"{sum(r['ok'] for r in table)} of {len(table)}", f"{sum(outside_band(r) for r in table)}",
             f"{min(r['ratio'] for r in table):.2f}-{max(r['ratio'] for r in table):.2f}",
             f"{worst['ratio']:.2f} +- {worst['ratio_se']:.2f}", "yes" if all(r["ok"] for r in table) else "**no**"]
 

@@ -21,12 +21,10 @@ Example:
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from benchmarks.depth_models import predicted_scale
-from benchmarks.uncertainty import CALIBRATION_TOLERANCE, decile_table, scene_bootstrap
+from benchmarks.uncertainty import decile_table, outside_band, scene_bootstrap, worst_decile
 from tdfd.errors import InputError
 
 __all__ = ["decile_summary", "relative_inverse_depth_error"]
@@ -66,10 +64,9 @@ def decile_summary(confidence: torch.Tensor, error: torch.Tensor, scene: torch.T
     """
     scale = predicted_scale(confidence.double(), confidence_scale)
     table = decile_table(confidence, scale, error)
-    se = scene_bootstrap(confidence, scale, error, scene, reps=reps)
+    for row, se in zip(table, scene_bootstrap(confidence, scale, error, scene, reps=reps)):
+        row["ratio_se"] = float(se)
     ratios = [r["ratio"] for r in table]
-    worst = max(range(len(table)), key=lambda k: abs(math.log(ratios[k])) if 0 < ratios[k] < math.inf else math.inf)
-    outside = sum(max(r - 1 - CALIBRATION_TOLERANCE, 1 - CALIBRATION_TOLERANCE - r) > 2 * float(s)
-                  for r, s in zip(ratios, se))
-    return [f"{sum(r['ok'] for r in table)} of {len(table)}", outside, f"{min(ratios):.2f}-{max(ratios):.2f}",
-            f"{ratios[worst]:.2f} +- {float(se[worst]):.2f} (decile {worst + 1})"]
+    k = worst_decile(table)
+    return [f"{sum(r['ok'] for r in table)} of {len(table)}", sum(outside_band(r) for r in table),
+            f"{min(ratios):.2f}-{max(ratios):.2f}", f"{ratios[k]:.2f} +- {table[k]['ratio_se']:.2f} (decile {k + 1})"]

@@ -24,7 +24,7 @@ from tdfd.errors import InputError
 from tdfd.model.scale_calibration_fit import laplace_mixture_median
 
 __all__ = ["laplace_mixture_median", "decile_table", "scene_bootstrap", "resample_scenes", "plot_calibration",
-           "CALIBRATION_TOLERANCE"]
+           "outside_band", "worst_decile", "CALIBRATION_TOLERANCE"]
 
 #: the target: observed / predicted within 20 % in every decile (issue 19)
 CALIBRATION_TOLERANCE = 0.2
@@ -68,6 +68,20 @@ def decile_table(confidence: torch.Tensor, scale: torch.Tensor, error: torch.Ten
                      "within": float((e[part] <= b[part] * math.log(2.0)).double().mean()),
                      "ok": abs(ratio - 1.0) <= CALIBRATION_TOLERANCE})
     return rows
+
+
+def outside_band(row: dict) -> bool:
+    """A :func:`decile_table` row (with its ``ratio_se``) outside the 20 % band by more than two
+    standard errors."""
+    gap = max(row["ratio"] - (1 + CALIBRATION_TOLERANCE), (1 - CALIBRATION_TOLERANCE) - row["ratio"])
+    return gap > 2 * row["ratio_se"]
+
+
+def worst_decile(table: list[dict]) -> int:
+    """The index of the :func:`decile_table` row whose ratio is farthest from 1 (in ``log``; a ratio
+    of 0 or ``inf`` first)."""
+    return max(range(len(table)),
+               key=lambda k: abs(math.log(table[k]["ratio"])) if 0 < table[k]["ratio"] < math.inf else math.inf)
 
 
 def scene_bootstrap(confidence: torch.Tensor, scale: torch.Tensor, error: torch.Tensor, scene: torch.Tensor,
