@@ -13,8 +13,8 @@ benchmark's scenes. Per interior tile of the 64/32 grid
 - ``product``: the tdfd stage (:mod:`tdfd.dfd.likelihood_stage`) as a user runs it: told only
   each frame's black level (a sensor constant), the PSF profiled over every shape with and
   without the diffraction of the working f-number, the noise estimated from the fit, the two
-  sigmas' factors from ``models/reference.likelihood.json`` (fitted on training scenes by
-  ``training/fit_likelihood_stage.py``: nothing is fitted on the benchmark); with
+  sigmas' factors and the map of the fused scale from ``models/reference.likelihood.json`` (fitted
+  on training scenes by ``training/fit_likelihood_stage.py``: nothing is fitted on the benchmark); with
   ``--baseline-scales`` the same fits are also fused with another scales file (an A/B of the
   fusion, e.g. with and without the model's bias removed, on the very same fits);
 - ``shape`` and ``known``, oracles: the seeded fit of
@@ -317,7 +317,9 @@ def main(argv: list[str] | None = None) -> int:
     wall = time.perf_counter() - t0
     timing = stage_timing(model, stage) if stage is not None else []
     factors = (f"{', '.join(f'{x:.2f}' for x in scales.fit)}, model {', '.join(f'{x:.2f}' for x in scales.model)} "
-               f"in the bands of the tile's slope split at {', '.join(f'{100 * e:.0f} %' for e in scales.slope_edges)}")
+               f"in the bands of the tile's slope split at {', '.join(f'{100 * e:.0f} %' for e in scales.slope_edges)}"
+               + (f"; the fused scale mapped through {len(scales.fused_log_b)} knots" if scales.fused_log_b else
+                  "; no map of the fused scale"))
     body = "\n".join([
         f"Machine: {machine()}; the refinement benchmark's first {args.samples} samples (seed {BENCH_SEED}, 256 px), "
         f"its planes in 0.3-1.0 m, the 25 interior tiles of each (the ring keeps the model's estimate and is not "
@@ -348,7 +350,8 @@ def main(argv: list[str] | None = None) -> int:
                               structure)] if structure else []),
         *(["", "The confidence as an uncertainty (issue 19: observed / predicted median error within 20 % in every "
                "confidence decile; the deciles and the bootstrap of section `uncertainty`, 100 resamples of the "
-               "planes or scenes; the stage states its fused sigma on the model's scale):", "",
+               "planes or scenes; the stage states its fused sigma on the model's scale, through the scales file's map of "
+               "the fused scale where it has one):", "",
            markdown_table(["tiles", "confidence of", "count", "deciles within 20 %", "outside by > 2 s.e.",
                            "ratio range", "worst ratio"], calibration)] if calibration else []),
         *(["", "The tdfd stage's cost (median of 3, torch, 2 threads; the model's torch forward beside it):", "",

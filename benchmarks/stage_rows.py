@@ -34,10 +34,10 @@ def refused(stage: LikelihoodStage, r: LikelihoodStageResult, depth: torch.Tenso
     m = r.fitted[0, 0]
     q_fit = 1.0 / r.depth_fit[0, 0][m].double()
     ii, jj = m.nonzero(as_tuple=True)
-    q, conf, bias = fuse_with_fit(1.0 / depth[0, 0][m].double(),
-                                  model_sigma(confidence[0, 0][m].double(), stage.confidence_scale), q_fit,
-                                  r.sigma_fit_raw[0, 0][m] * q_fit, r.slope[0, 0][m].double(), scales,
-                                  stage.confidence_scale, ii, jj, tuple(m.shape))
+    q, conf, bias, _ = fuse_with_fit(1.0 / depth[0, 0][m].double(),
+                                     model_sigma(confidence[0, 0][m].double(), stage.confidence_scale), q_fit,
+                                     r.sigma_fit_raw[0, 0][m] * q_fit, r.slope[0, 0][m].double(), scales,
+                                     stage.confidence_scale, ii, jj, tuple(m.shape))
     d[0, 0] = (d[0, 0].double() * torch.exp(bias)).to(d.dtype)
     d[0, 0][m], c[0, 0][m] = (1.0 / q).to(d.dtype), conf.to(c.dtype)
     return d, c

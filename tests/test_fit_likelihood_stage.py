@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from tdfd.dfd.inverse_variance import LikelihoodScales
-from training.fit_likelihood_stage import black_levels, fit_scales, main
+from training.fit_likelihood_stage import (black_levels, decile_ratios, fit_fused_scale_map, fit_scales,
+                                           fused_errors, main)
 
 
 def test_black_levels_are_fractions_of_full_scale():
@@ -62,15 +63,73 @@ def test_the_fit_writes_a_scales_file_with_its_provenance(tmp_path):
     stem = tmp_path / "m"
     for ext in (".safetensors", ".json"):
         shutil.copy(Path("models") / f"reference{ext}", f"{stem}{ext}")
-    assert main(["--model", str(stem), "--planes", "2", "--scenes", "0"]) == 0
+    assert main(["--model", str(stem), "--planes", "5", "--scenes", "0", "--fused-bins", "3"]) == 0
     scales = LikelihoodScales.load(f"{stem}.likelihood.json")
     assert len(scales.fit) == len(scales.slope_edges) + 1 == 3 and min(scales.fit + scales.model) > 0
     prov = json.loads(Path(f"{stem}.likelihood.json").read_text())["provenance"]
-    assert prov["planes"] == 2 and prov["tiles"]["planes"] > 0 and prov["tiles"]["slanted"] == 0
-    assert "--planes 2 --scenes 0" in prov["command"] and not scales.shared_bias and scales.bias_radius is None
+    assert prov["planes"] == 5 and prov["tiles"]["planes"] > 0 and prov["tiles"]["slanted"] == 0
+    assert "--planes 5 --scenes 0 --fused-bins 3" in prov["command"] and not scales.shared_bias
+    assert scales.bias_radius is None
+    # the fused scale's map: as many knots as bins where the tiles allow them (25 each)
+    assert prov["fused_bins"] == min(3, sum(prov["tiles"].values()) // 25) >= 2
+    assert len(scales.fused_log_b) == prov["fused_bins"]
+    assert len(prov["fused_decile_ratios_most_confident_last"]["after_map"]) == 10
     assert main(["--model", str(stem), "--planes", "2", "--scenes", "0", "--shared-bias", "--bias-radius", "2",
                  "--out", str(tmp_path / "b.json")]) == 0
     biased = LikelihoodScales.load(tmp_path / "b.json")
-    assert biased.shared_bias and biased.bias_radius == 2 and biased.fit == scales.fit
+    assert biased.shared_bias and biased.bias_radius == 2
+    assert biased.fused_log_b is None  # two planes: too few tiles for a map, said in the log
     assert "--shared-bias --bias-radius 2 --out" in biased.provenance["command"]
-    assert set(prov["median_abs_error"]) == {"fit", "model", "model_without_bias"}
+    assert set(prov["median_abs_error"]) == {"fit", "model", "model_without_bias", "fused"}
+
+
+def _correlated_errors(images: int = 200, tiles: int = 40, seed: int = 5) -> dict[str, torch.Tensor]:
+    """Fit and model errors that share half their variance, each at its stated sigma: the
+    inverse-variance fusion, taking them for independent, understates its sigma."""
+    g = torch.Generator().manual_seed(seed)
+    n = images * tiles
+    sig = 0.002 * torch.exp(2.0 * torch.rand(n, generator=g, dtype=torch.float64))  # 0.2-1.5 %
+    common = torch.randn(n, generator=g, dtype=torch.float64)
+    z_fit = (common + torch.randn(n, generator=g, dtype=torch.float64)) / 2 ** 0.5
+    z_model = (common + torch.randn(n, generator=g, dtype=torch.float64)) / 2 ** 0.5
+    return {"fit_error": z_fit * sig, "fit_sigma": sig, "model_error": z_model * sig, "model_sigma": sig,
+            "slope": torch.zeros(n, dtype=torch.float64),
+            "image": torch.arange(images, dtype=torch.float64).repeat_interleave(tiles),
+            "row": (torch.arange(tiles) // 8).repeat(images).to(torch.float64),
+            "col": (torch.arange(tiles) % 8).repeat(images).to(torch.float64)}
+
+
+def test_the_fused_scales_map_makes_the_correlated_fusion_state_its_error():
+    errors = _correlated_errors()
+    scales = fit_scales(errors, slope_edges=(), remove_bias=False)
+    err, b = fused_errors(errors, scales)
+    before = decile_ratios(err, b)
+    # correlation 0.5 between equal sigmas: the fused variance is 1.5x what independence says
+    assert min(before) > 1.1
+    mapped = fit_fused_scale_map(errors, scales, bins=20)
+    assert mapped.fit == scales.fit and mapped.model == scales.model and mapped.fused_log_b is not None
+    after = decile_ratios(err, mapped.fused_scale(b))
+    assert all(abs(r - 1.0) < 0.1 for r in after), after
+    # held out: a second draw of the same world is stated right too
+    held = _correlated_errors(seed=6)
+    err_h, b_h = fused_errors(held, scales)
+    assert all(abs(r - 1.0) < 0.12 for r in decile_ratios(err_h, mapped.fused_scale(b_h)))
+
+
+def test_fused_errors_are_the_stages_fusion_per_image():
+    errors = _correlated_errors(images=3, tiles=10)
+    errors["fit_sigma"] = torch.where(torch.arange(30) % 3 == 0, torch.inf, errors["fit_sigma"])
+    scales = LikelihoodScales(fit=2.0, model=0.5)
+    err, b = fused_errors(errors, scales)
+    q_fit, q_model = 1 / (1 + errors["fit_error"]), 1 / (1 + errors["model_error"])
+    s_fit, s_model = 2.0 * errors["fit_sigma"], 0.5 * errors["model_sigma"]
+    w_fit = torch.where(torch.isfinite(s_fit), 1 / s_fit.clamp_min(1e-300) ** 2, torch.zeros_like(s_fit))
+    w_fit = w_fit * (1 / q_fit ** 2)  # the fit's sigma in 1/m is relative times q
+    w_model = 1 / (s_model * q_model) ** 2
+    q = (w_fit * q_fit + w_model * q_model) / (w_fit + w_model)
+    torch.testing.assert_close(err, q - 1)
+    torch.testing.assert_close(b, (w_fit + w_model) ** -0.5 / q / 0.5 / 2 ** 0.5)
+    # a tile without a fit is the model's own: its error and its own Laplace scale
+    no_fit = ~torch.isfinite(errors["fit_sigma"])
+    torch.testing.assert_close(err[no_fit], q_model[no_fit] - 1)
+    torch.testing.assert_close(b[no_fit], errors["model_sigma"][no_fit] / 2 ** 0.5)

@@ -16,7 +16,7 @@ from tdfd import Camera
 from tdfd.dfd.cross_residual import tile_cross_residual_nll, valid_residual
 from tdfd.dfd.inverse_variance import (LikelihoodScales, confidence_from_sigma, fuse, model_sigma, sigma_factor,
                                       tile_slope)
-from tdfd.dfd.likelihood_stage import LikelihoodStage, likelihood_stage, valid_tiles
+from tdfd.dfd.likelihood_stage import LikelihoodStage, fuse_with_fit, likelihood_stage, valid_tiles
 from tdfd.dfd.psf_hypotheses import SHAPES, PsfHypothesis, diffraction_px, psf_hypotheses
 from tdfd.dfd.seeded_fit import inverse_depth_grid, seed_mask, seeded_tile_fit
 from tdfd.errors import InputError, ModelError, NonFiniteError, ShapeError
@@ -255,7 +255,7 @@ def test_the_stage_rejects_bad_input_with_typed_errors():
 def test_scales_keep_the_shared_bias_flag_and_read_version_1(tmp_path):
     s = LikelihoodScales((1.5, 3.0), (0.7, 0.6), (0.02,), shared_bias=True)
     s.save(tmp_path / "s.json")
-    assert json.loads((tmp_path / "s.json").read_text())["format"] == "tdfd.likelihood_scales/2"
+    assert json.loads((tmp_path / "s.json").read_text())["format"] == "tdfd.likelihood_scales/3"
     assert LikelihoodScales.load(tmp_path / "s.json").shared_bias is True
     LikelihoodScales(2.0, 0.5, shared_bias=True, bias_radius=2).save(tmp_path / "r.json")
     assert LikelihoodScales.load(tmp_path / "r.json").bias_radius == 2
@@ -341,3 +341,60 @@ def test_a_bias_radius_removes_each_regions_own_bias():
     assert float(err_whole.max()) > 0.03 and float(err_local.max()) < 0.005  # one bias fits one half only
     assert float(local.bias[0, 0, 5, 2]) == pytest.approx(-math.log(1.03), abs=0.005)
     assert float(local.bias[0, 0, 5, 7]) == pytest.approx(-math.log(0.97), abs=0.005)
+
+
+def test_the_fused_scales_map_round_trips_and_version_2_loads_without_it(tmp_path):
+    s = LikelihoodScales((1.5, 3.0), (0.7, 0.6), (0.02,), fused_log_b=(-6.0, -4.0, -2.0),
+                         fused_log_b_calibrated=(-5.0, -3.5, -2.0))
+    s.save(tmp_path / "s.json")
+    back = LikelihoodScales.load(tmp_path / "s.json")
+    assert back == s and back.fused_log_b == (-6.0, -4.0, -2.0)
+    # between the knots log b + s(log b), s linear in the shifts (1, 0.5, 0); held beyond them
+    b = torch.tensor([math.exp(-7.0), math.exp(-5.0), math.exp(-3.0), math.exp(-1.0), math.inf], dtype=torch.float64)
+    torch.testing.assert_close(back.fused_scale(b)[:4].log(),
+                               torch.tensor([-6.0, -4.25, -2.75, -1.0], dtype=torch.float64))
+    assert back.fused_scale(b)[4] == math.inf
+    plain = LikelihoodScales(2.0, 0.5)
+    assert plain.fused_log_b is None and torch.equal(plain.fused_scale(b), b)
+    (tmp_path / "v2.json").write_text(json.dumps({"format": "tdfd.likelihood_scales/2", "fit": 2.0, "model": 0.5,
+                                                  "shared_bias": True, "bias_radius": 3}))
+    v2 = LikelihoodScales.load(tmp_path / "v2.json")
+    assert v2.fused_log_b is None and v2.fused_log_b_calibrated is None and v2.shared_bias
+
+
+@pytest.mark.parametrize("knots", [dict(fused_log_b=(-5.0, -3.0)),  # one of the pair
+                                   dict(fused_log_b=(-5.0, -3.0), fused_log_b_calibrated=(-3.0, -4.0)),  # order lost
+                                   dict(fused_log_b=(-3.0, -5.0), fused_log_b_calibrated=(-4.0, -3.0)),  # not increasing
+                                   dict(fused_log_b=(-5.0,), fused_log_b_calibrated=(-4.0,)),  # one knot
+                                   dict(fused_log_b=(-5.0, math.nan), fused_log_b_calibrated=(-4.0, -3.0))])
+def test_bad_fused_scale_knots_are_typed_errors(tmp_path, knots):
+    with pytest.raises(InputError):
+        LikelihoodScales(2.0, 0.5, **knots)
+    data = {"format": "tdfd.likelihood_scales/3", "fit": 2.0, "model": 0.5,
+            **{k: [v if math.isfinite(v) else "nan" for v in vals] for k, vals in knots.items()}}
+    (tmp_path / "bad.json").write_text(json.dumps(data))
+    with pytest.raises(ModelError, match="bad likelihood scales"):
+        LikelihoodScales.load(tmp_path / "bad.json")
+
+
+def test_the_fused_confidence_goes_through_the_map_only_where_the_fit_adds_to_the_model():
+    b0 = 0.01
+    q_model = torch.tensor([2.0, 2.0, 2.0], dtype=torch.float64)
+    q_fit = torch.tensor([2.02, 1.98, 2.0], dtype=torch.float64)
+    s_model = torch.tensor([0.02, 0.02, 0.02], dtype=torch.float64)  # relative
+    s_fit = torch.tensor([0.02, 0.04, math.inf], dtype=torch.float64)  # 1/m: 1 % and 2 %; none
+    rows, cols = torch.tensor([0, 0, 1]), torch.tensor([0, 1, 0])
+    plain = LikelihoodScales(1.0, 1.0)
+    doubled = LikelihoodScales(1.0, 1.0, fused_log_b=(-20.0, 5.0), fused_log_b_calibrated=(-20.0 + math.log(2.0),
+                                                                                         5.0 + math.log(2.0)))
+    q0, c0, _, b0_raw = fuse_with_fit(q_model, s_model, q_fit, s_fit, torch.zeros(3), plain, b0, rows, cols, (2, 2))
+    q1, c1, _, b1_raw = fuse_with_fit(q_model, s_model, q_fit, s_fit, torch.zeros(3), doubled, b0, rows, cols, (2, 2))
+    torch.testing.assert_close(q0, q1)  # the map states the scale; the estimate is the same
+    torch.testing.assert_close(b0_raw, b1_raw)
+    # inverse variance of 1 % and 2 % relative: sigma 1/sqrt(1e4 + 2.5e3); the Laplace scale sigma / sqrt(2)
+    expected = 1.0 / math.sqrt(1e4 + 2.5e3) / math.sqrt(2.0)
+    assert float(b0_raw[0]) == pytest.approx(expected, rel=0.02)
+    torch.testing.assert_close(c0[:2], 1.0 / (1.0 + (b0_raw[:2] / b0) ** 2))
+    torch.testing.assert_close(c1[:2], 1.0 / (1.0 + (2.0 * b0_raw[:2] / b0) ** 2))
+    # no fit: the model's own confidence, map or not (sigma 2 % is b = sqrt(2) %: conf 1/3)
+    assert float(c0[2]) == pytest.approx(1.0 / 3.0) and float(c1[2]) == pytest.approx(1.0 / 3.0)

@@ -23,8 +23,16 @@ The model's bias, measured against the fit on the fitted tiles within ``--bias-r
 need the factors, and the model's factor belongs to the map without it, so the model's factor is
 refitted on the debiased errors :data:`BIAS_ITERATIONS` times.
 
+Last, the fused Laplace scale the factors give is mapped once more (``log b' = log b + s(log b)``,
+:func:`tdfd.model.scale_calibration_fit.fit_scale_calibration` in ``--fused-bins`` equal-count bins
+of the same tiles' fused errors, :func:`fused_errors`): the fusion takes the two errors for
+independent and the fit's curvature sigma for proportional to its error, and neither holds, so
+without the map the stage's confidence overstated its certainty in its most confident deciles
+(``docs/BENCHMARKS.md``, section ``likelihood_stage``).
+
 Writes ``<model>.likelihood.json`` (:class:`tdfd.dfd.inverse_variance.LikelihoodScales`, with the
-command, the scene counts, the tile counts and the medians as provenance).
+command, the scene counts, the tile counts, the medians and the in-sample decile ratios of the
+fused scale before and after its map as provenance).
 """
 
 from __future__ import annotations
@@ -39,14 +47,16 @@ import torch
 from tqdm import tqdm
 
 from tdfd.dfd.inverse_variance import LikelihoodScales, model_sigma, sigma_factor
-from tdfd.dfd.likelihood_stage import LikelihoodStage
+from tdfd.dfd.likelihood_stage import LikelihoodStage, fuse_with_fit
 from tdfd.dfd.shared_bias import bias_map
 from tdfd.model import DFDModel
+from tdfd.model.scale_calibration_fit import fit_scale_calibration, laplace_mixture_median
 
 from .calibrate_scale import PLANE_SEED, STRUCTURE_SEED, calibration_scene_sets
 
-__all__ = ["SLOPE_EDGES", "MIN_BAND_TILES", "BIAS_ITERATIONS", "BIAS_RADIUS", "black_levels", "collect_stage_errors",
-           "image_biases", "model_error_without_bias", "fit_scales", "main"]
+__all__ = ["SLOPE_EDGES", "MIN_BAND_TILES", "BIAS_ITERATIONS", "BIAS_RADIUS", "FUSED_BINS", "FUSED_MIN_TILES_PER_BIN",
+           "black_levels", "collect_stage_errors", "image_biases", "model_error_without_bias", "fit_scales",
+           "fused_errors", "fit_fused_scale_map", "decile_ratios", "main"]
 
 #: the inner edges of the slope bands (:func:`tdfd.dfd.inverse_variance.tile_slope`)
 SLOPE_EDGES = (0.01, 0.03)
@@ -57,6 +67,10 @@ BIAS_ITERATIONS = 3
 #: the model's bias at a tile is measured on the fitted tiles within this many tiles
 #: (:func:`tdfd.dfd.shared_bias.bias_map`)
 BIAS_RADIUS = 3
+#: equal-count bins of the fused scale, one knot of its map each
+FUSED_BINS = 40
+#: the fewest tiles per bin of that map (fewer tiles: fewer bins, and below two bins no map)
+FUSED_MIN_TILES_PER_BIN = 25
 
 logger = logging.getLogger("training.fit_likelihood_stage")
 
@@ -154,6 +168,44 @@ def fit_scales(errors: dict[str, torch.Tensor], slope_edges: tuple[float, ...] =
                             bias_radius=bias_radius if remove_bias else None)
 
 
+def fused_errors(errors: dict[str, torch.Tensor], scales: LikelihoodScales) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(error, scale)`` ``(N,)``: each of :func:`collect_stage_errors`'s tiles fused as the stage
+    fuses it with ``scales`` (:func:`tdfd.dfd.likelihood_stage.fuse_with_fit`, per image, the
+    model's bias removed where ``scales`` say so): the fused relative inverse-depth error
+    ``(q - q_true) / q_true`` and the fused Laplace scale before the map."""
+    err, scale = torch.zeros_like(errors["model_error"]), torch.zeros_like(errors["model_error"])
+    for img in torch.unique(errors["image"]):
+        sel = errors["image"] == img
+        q_fit, q_model = 1.0 / (1.0 + errors["fit_error"][sel]), 1.0 / (1.0 + errors["model_error"][sel])  # q_true = 1
+        rows, cols = errors["row"][sel].long(), errors["col"][sel].long()
+        q, _, _, b = fuse_with_fit(q_model, errors["model_sigma"][sel], q_fit, errors["fit_sigma"][sel] * q_fit,
+                                   errors["slope"][sel], scales, 1.0, rows, cols,
+                                   (int(rows.max()) + 1, int(cols.max()) + 1))
+        err[sel], scale[sel] = q - 1.0, b
+    return err, scale
+
+
+def fit_fused_scale_map(errors: dict[str, torch.Tensor], scales: LikelihoodScales, bins: int = FUSED_BINS
+                        ) -> LikelihoodScales:
+    """``scales`` with the map of their fused scale (:meth:`LikelihoodScales.fused_scale`) fitted on
+    the tiles' fused errors (:func:`fused_errors`; ``bins`` equal-count bins of the scale, their
+    log factors smoothed over 3 bins)."""
+    err, b = fused_errors(errors, scales)
+    kx, ky = fit_scale_calibration(b, err, bins=bins, smooth=3)
+    return LikelihoodScales(fit=scales.fit, model=scales.model, slope_edges=scales.slope_edges,
+                            shared_bias=scales.shared_bias, bias_radius=scales.bias_radius,
+                            fused_log_b=tuple(kx.tolist()), fused_log_b_calibrated=tuple(ky.tolist()),
+                            provenance=scales.provenance)
+
+
+def decile_ratios(error: torch.Tensor, scale: torch.Tensor, bins: int = 10) -> list[float]:
+    """Per equal-count bin of ``scale`` (the most confident last): the observed median ``|error|``
+    over the Laplace mixture median of the bin's scales (1 where the scale is calibrated)."""
+    order = torch.argsort(scale, descending=True, stable=True)
+    return [float(error[part].abs().median()) / laplace_mixture_median(scale[part])
+            for part in torch.tensor_split(order, bins)]
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--model", default="models/reference", help="model path stem (writes STEM.likelihood.json)")
@@ -165,15 +217,25 @@ def main(argv: list[str] | None = None) -> int:
                                                                "before the fusion (default: the model's map as it is)")
     p.add_argument("--bias-radius", type=int, default=BIAS_RADIUS,
                    help="measure the model's bias on the fitted tiles within this many tiles (0: the whole image)")
+    p.add_argument("--fused-bins", type=int, default=FUSED_BINS,
+                   help="equal-count bins of the fused scale for its map (0: no map)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    if args.planes < 1 or args.scenes < 0 or args.bias_radius < 0:
-        p.error("--planes must be >= 1, --scenes and --bias-radius >= 0")
+    if args.planes < 1 or args.scenes < 0 or args.bias_radius < 0 or args.fused_bins == 1 or args.fused_bins < 0:
+        p.error("--planes must be >= 1, --scenes and --bias-radius >= 0, --fused-bins 0 or >= 2")
     torch.set_num_threads(args.threads)
     model = DFDModel.load(args.model)
     t0 = time.perf_counter()
     errors = collect_stage_errors(model, args.planes, args.scenes)
     fitted = fit_scales(errors, remove_bias=args.shared_bias, bias_radius=args.bias_radius or None)
+    fused_err, fused_b = fused_errors(errors, fitted)
+    bins = min(args.fused_bins, fused_err.numel() // FUSED_MIN_TILES_PER_BIN)
+    if bins < args.fused_bins:
+        logger.warning("%d fitted tiles: the fused scale's map gets %s (asked %d bins, at least %d tiles each)",
+                       fused_err.numel(), f"{bins} bins" if bins >= 2 else "no map", args.fused_bins,
+                       FUSED_MIN_TILES_PER_BIN)
+    if bins >= 2:
+        fitted = fit_fused_scale_map(errors, fitted, bins)
     wall = time.perf_counter() - t0
     counts = [int((errors["set"] == k).sum()) for k in range(4)]
     bands = fitted.band(errors["slope"])
@@ -183,22 +245,34 @@ def main(argv: list[str] | None = None) -> int:
     provenance = {
         "command": f".venv/bin/python -m training.fit_likelihood_stage --model {args.model} --planes {args.planes} "
                    f"--scenes {args.scenes}" + (f" --shared-bias --bias-radius {args.bias_radius}" if args.shared_bias
-                                                  else "") + (f" --out {args.out}" if args.out else ""),
+                                                  else "")
+                   + (f" --fused-bins {args.fused_bins}" if args.fused_bins != FUSED_BINS else "")
+                   + (f" --out {args.out}" if args.out else ""),
         "planes": args.planes, "scenes_per_layout": args.scenes, "plane_seed": PLANE_SEED,
         "structure_seed": STRUCTURE_SEED, "tiles": {"planes": counts[0], "slanted": counts[1], "layout": counts[2],
                                                     "smooth": counts[3]},
         "median_abs_error": {"fit": float(errors["fit_error"].abs().median()),
                              "model": float(errors["model_error"].abs().median()),
-                             "model_without_bias": float(model_error_without_bias(errors, biases).abs().median())},
+                             "model_without_bias": float(model_error_without_bias(errors, biases).abs().median()),
+                             "fused": float(fused_err.abs().median())},
+        "fused_decile_ratios_most_confident_last": {
+            "before_map": [round(r, 3) for r in decile_ratios(fused_err, fused_b)],
+            "after_map": [round(r, 3) for r in decile_ratios(fused_err, fitted.fused_scale(fused_b))],
+            "note": "in sample: the map's own tiles; observed median |e| over the Laplace mixture median"},
         "tiles_per_slope_band": [int((bands == k).sum()) for k in range(len(fitted.fit))],
+        "fused_bins": bins if bins >= 2 else 0,
         "wall_s": round(wall, 1),
     }
     path = Path(args.out or f"{args.model}.likelihood.json")
     LikelihoodScales(fit=fitted.fit, model=fitted.model, slope_edges=fitted.slope_edges,
-                     shared_bias=fitted.shared_bias, bias_radius=fitted.bias_radius, provenance=provenance).save(path)
-    logger.info("fit sigma factors %s, model sigma factors %s (slope bands at %s, %s tiles) on %d tiles (%s); %.0f s; "
-                "wrote %s", [round(x, 4) for x in fitted.fit], [round(x, 4) for x in fitted.model], fitted.slope_edges,
-                provenance["tiles_per_slope_band"], sum(counts), provenance["tiles"], wall, path)
+                     shared_bias=fitted.shared_bias, bias_radius=fitted.bias_radius, fused_log_b=fitted.fused_log_b,
+                     fused_log_b_calibrated=fitted.fused_log_b_calibrated, provenance=provenance).save(path)
+    logger.info("fit sigma factors %s, model sigma factors %s (slope bands at %s, %s tiles) on %d tiles (%s); fused "
+                "scale's decile ratios (most confident last) %s before its map, %s after; %.0f s; wrote %s",
+                [round(x, 4) for x in fitted.fit], [round(x, 4) for x in fitted.model], fitted.slope_edges,
+                provenance["tiles_per_slope_band"], sum(counts), provenance["tiles"],
+                provenance["fused_decile_ratios_most_confident_last"]["before_map"],
+                provenance["fused_decile_ratios_most_confident_last"]["after_map"], wall, path)
     return 0
 
 

@@ -9,6 +9,12 @@ scenes), so each is multiplied by a factor that makes the median of ``|error| / 
 variable's, 0.674, on held-out training scenes (:func:`sigma_factor`; :class:`LikelihoodScales`
 stores them). The fused inverse depth is the inverse-variance mean.
 
+The fused sigma is stated as a Laplace scale on the model's confidence scale; since the two
+errors are not independent (they share the scene) and the fit's curvature sigma is not
+proportional to its error, that scale is mapped once more, ``log b' = log b + s(log b)``
+(:func:`tdfd.knot_map.calibrate_log_scale`, fitted on the fused errors of the same training
+scenes: :meth:`LikelihoodScales.fused_scale`), so that its median error is ``b' ln 2`` along ``b``.
+
 Example:
     >>> import torch
     >>> fuse(torch.tensor([1.0, 1.0]), torch.tensor([1.0, float("inf")]),
@@ -27,15 +33,17 @@ from typing import Any
 import torch
 
 from ..errors import InputError, ModelError
+from ..knot_map import calibrate_log_scale, validate_knots
 
 __all__ = ["MEDIAN_ABS_NORMAL", "SCALES_FORMAT", "model_sigma", "confidence_from_sigma", "sigma_factor", "fuse",
            "LikelihoodScales", "tile_slope"]
 
 #: The median of ``|x|`` for a standard normal ``x``.
 MEDIAN_ABS_NORMAL = 0.6744897501960817
-#: The ``format`` of a scales file (version 1, before ``shared_bias``, still loads: without it).
-SCALES_FORMAT = "tdfd.likelihood_scales/2"
-_FORMATS = ("tdfd.likelihood_scales/1", SCALES_FORMAT)
+#: The ``format`` of a scales file (versions 1, before ``shared_bias``, and 2, before the fused
+#: scale's map, still load: without them).
+SCALES_FORMAT = "tdfd.likelihood_scales/3"
+_FORMATS = ("tdfd.likelihood_scales/1", "tdfd.likelihood_scales/2", SCALES_FORMAT)
 _TINY = 1e-150  # squares stay above float64's smallest normal
 
 
@@ -127,6 +135,9 @@ class LikelihoodScales:
         bias_radius: with ``shared_bias``, the bias of each tile is measured on the fitted tiles
             within this many tiles of it (:func:`~tdfd.dfd.shared_bias.bias_map`); ``None``: one
             bias for the whole image.
+        fused_log_b, fused_log_b_calibrated: knots of the map of the fused Laplace scale
+            (:meth:`fused_scale`; :func:`~tdfd.knot_map.validate_knots`), both or neither; ``None``:
+            the fused scale as the two factors make it.
         provenance: how they were fitted (command, data, counts); free-form, saved with them.
 
     Example:
@@ -141,6 +152,8 @@ class LikelihoodScales:
     provenance: dict[str, Any] = field(default_factory=dict, compare=False)
     shared_bias: bool = field(default=False, kw_only=True)
     bias_radius: int | None = field(default=None, kw_only=True)
+    fused_log_b: tuple[float, ...] | None = field(default=None, kw_only=True)
+    fused_log_b_calibrated: tuple[float, ...] | None = field(default=None, kw_only=True)
 
     def __post_init__(self) -> None:
         bands = len(self.slope_edges) + 1
@@ -159,6 +172,12 @@ class LikelihoodScales:
             raise InputError(f"shared_bias must be a bool, got {self.shared_bias!r}")
         if self.bias_radius is not None and not (isinstance(self.bias_radius, int) and self.bias_radius >= 1):
             raise InputError(f"bias_radius must be an int >= 1 (tiles) or None, got {self.bias_radius!r}")
+        if (self.fused_log_b is None) != (self.fused_log_b_calibrated is None):
+            raise InputError("the fused scale's map needs both fused_log_b and fused_log_b_calibrated, or neither")
+        if self.fused_log_b is not None:
+            x, y = validate_knots(self.fused_log_b, self.fused_log_b_calibrated)  # type: ignore[arg-type]
+            object.__setattr__(self, "fused_log_b", tuple(x))
+            object.__setattr__(self, "fused_log_b_calibrated", tuple(y))
 
     def band(self, slope: torch.Tensor) -> torch.Tensor:
         """Each tile's band index for its slope (``(T,)``, long)."""
@@ -169,6 +188,22 @@ class LikelihoodScales:
         """``(fit, model)`` factors ``(T,)`` float64 of tiles of these slopes."""
         k = self.band(slope)
         return (torch.tensor(self.fit, dtype=torch.float64)[k], torch.tensor(self.model, dtype=torch.float64)[k])
+
+    def fused_scale(self, scale: torch.Tensor) -> torch.Tensor:
+        """The fused Laplace scale ``b`` (any shape, > 0) through the map, ``exp(log b + s(log b))``;
+        ``b`` itself without one (``inf`` stays ``inf``).
+
+        Example:
+            >>> s = LikelihoodScales(fused_log_b=(-5.0, -3.0), fused_log_b_calibrated=(-4.0, -3.0))
+            >>> round(float(s.fused_scale(torch.tensor([math.exp(-4.0)]))[0].log()), 4)
+            -3.5
+        """
+        b = scale.to(torch.float64)
+        if self.fused_log_b is None:
+            return b
+        out = calibrate_log_scale(b.log(), torch.tensor(self.fused_log_b, dtype=torch.float64),
+                                  torch.tensor(self.fused_log_b_calibrated, dtype=torch.float64)).exp()
+        return torch.where(torch.isfinite(b), out, b)
 
     def save(self, path: str | Path) -> None:
         """Write them as JSON (``format``: :data:`SCALES_FORMAT`)."""
@@ -190,6 +225,7 @@ class LikelihoodScales:
         try:
             return cls(fit=data["fit"], model=data["model"], slope_edges=tuple(data.get("slope_edges") or ()),
                        shared_bias=data.get("shared_bias", False), bias_radius=data.get("bias_radius"),
+                       fused_log_b=data.get("fused_log_b"), fused_log_b_calibrated=data.get("fused_log_b_calibrated"),
                        provenance=dict(data.get("provenance") or {}))
         except (KeyError, TypeError, InputError) as e:
             raise ModelError(f"{path}: bad likelihood scales ({e})") from e

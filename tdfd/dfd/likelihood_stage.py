@@ -20,8 +20,10 @@ grid the stage:
 4. fuses the fit with the model by inverse variance, each sigma times its factor for the tile's
    slope in the model's map (the fit assumes a fronto-parallel tile), fitted on training scenes
    (:mod:`tdfd.dfd.inverse_variance`, ``training/fit_likelihood_stage.py``), and
-   states the fused sigma as a confidence on the model's scale: a tile the fit adds nothing to
-   keeps the model's confidence.
+   states the fused sigma as a confidence on the model's scale, through a map of the fused
+   scale fitted on the same training scenes (``scales.fused_scale``: the two errors are
+   correlated, and the fit's sigma is not proportional to its error); a tile the fit adds
+   nothing to keeps the model's confidence.
 
 Tiles closer to the frame's edge than a kernel's half-width (where the residual is not valid)
 keep the model's estimate (without the image's bias, where it is removed) and confidence; so do
@@ -147,9 +149,13 @@ def fuse_with_fit(q_model: torch.Tensor, sigma_model: torch.Tensor, q_fit: torch
         rows, cols, grid: the tiles' cells on the ``(h, w)`` tile grid.
 
     Returns:
-        ``(q, confidence, bias)``: the fused inverse depths, their confidence on the model's
-        scale, and the ``(h, w)`` map of the bias removed from the model's ``log q`` (0 without
-        ``shared_bias``).
+        ``(q, confidence, bias, scale)``: the fused inverse depths; their confidence on the
+        model's scale, from the fused Laplace scale through ``scales``' map
+        (:meth:`~tdfd.dfd.inverse_variance.LikelihoodScales.fused_scale`) where the fit has a
+        finite sigma (elsewhere the fusion is the model's own estimate, and so is the
+        confidence); the ``(h, w)`` map of the bias removed from the model's ``log q`` (0 without
+        ``shared_bias``); and the fused Laplace scale of the relative error before the map,
+        ``sigma / (q f_model sqrt(2))`` (what the map is fitted on, ``training/fit_likelihood_stage.py``).
     """
     f_fit, f_model = scales.factors(slope)
     s_model = sigma_model.to(torch.float64) * f_model  # relative
@@ -161,7 +167,9 @@ def fuse_with_fit(q_model: torch.Tensor, sigma_model: torch.Tensor, q_fit: torch
         bias = torch.zeros(grid, dtype=torch.float64)
     q_model = q_model * torch.exp(-bias[rows, cols])
     q, s_q = fuse(q_fit, s_fit, q_model, s_model * q_model)
-    return q, confidence_from_sigma(s_q / q / f_model, confidence_scale), bias
+    scale = s_q / q / f_model / math.sqrt(2.0)  # Laplace: the standard deviation is sqrt(2) b
+    stated = torch.where(torch.isfinite(s_fit), scales.fused_scale(scale), scale)
+    return q, confidence_from_sigma(math.sqrt(2.0) * stated, confidence_scale), bias, scale
 
 
 def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torch.Tensor, confidence: torch.Tensor,
@@ -225,8 +233,8 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
         fit = seeded_tile_fit(y1, y2, camera, origins, tile, seed, hyps, window=seed_window, step=q_step, band=band,
                               max_kernel=max_kernel, profile_tiles=profile_tiles, profile_by=confidence[k, 0, ii, jj])
         f_fit, _ = scales.factors(slope)
-        q, conf_q, biases[k, 0] = fuse_with_fit(seed, sigma_m[k, 0, ii, jj], fit.q, fit.sigma_q, slope, scales,
-                                                confidence_scale, ii, jj, tuple(depth.shape[-2:]))
+        q, conf_q, biases[k, 0], _ = fuse_with_fit(seed, sigma_m[k, 0, ii, jj], fit.q, fit.sigma_q, slope, scales,
+                                                   confidence_scale, ii, jj, tuple(depth.shape[-2:]))
         out_d[k] = (depth[k].to(torch.float64) * torch.exp(biases[k])).to(depth.dtype)  # the ring too
         out_d[k, 0, ii, jj] = (1.0 / q).to(depth.dtype)
         out_c[k, 0, ii, jj] = conf_q.to(confidence.dtype)

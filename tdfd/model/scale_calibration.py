@@ -36,57 +36,19 @@ element-wise operators on any frame size.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import torch
 from torch import nn
 
 from ..errors import InputError
+from ..knot_map import calibrate_log_scale, finite_floats, knot_pairs, piecewise_linear, validate_knots
 
 __all__ = ["piecewise_linear", "calibrate_log_scale", "tile_border_distance", "validate_knots",
            "validate_depth_knots", "validate_border_shifts", "ScaleCalibration"]
 
 #: keys of a calibration's JSON description; the first two go together, and so do the next two
 CONFIG_KEYS = ("log_b", "log_b_calibrated", "inverse_depth_per_m", "depth_log_shift", "border_log_shift")
-
-
-def _floats(values: Sequence[float], what: str) -> list[float]:
-    try:
-        out = [float(v) for v in values]
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"scale calibration {what} must be numbers: {exc}") from exc
-    if not all(math.isfinite(v) for v in out):
-        raise InputError(f"scale calibration {what} must be finite")
-    return out
-
-
-def _knot_pairs(xs: Sequence[float], ys: Sequence[float], x_name: str, y_name: str) -> tuple[list[float], list[float]]:
-    """Finite numbers, as many ``xs`` as ``ys`` (at least 2), ``xs`` strictly increasing."""
-    x, y = _floats(xs, x_name), _floats(ys, y_name)
-    if len(x) != len(y) or len(x) < 2:
-        raise InputError(f"scale calibration needs as many {x_name} as {y_name} knots, at least 2; "
-                         f"got {len(x)} and {len(y)}")
-    if any(b <= a for a, b in zip(x, x[1:])):
-        raise InputError(f"scale calibration knots {x_name} must be strictly increasing")
-    return x, y
-
-
-def validate_knots(log_b: Sequence[float], log_b_calibrated: Sequence[float]) -> tuple[list[float], list[float]]:
-    """Check the scale part's knots: as many of each (at least 2), finite, ``log_b`` strictly
-    increasing and ``log_b_calibrated`` non-decreasing (the map must keep the confidence's order).
-
-    Returns:
-        The knots as two lists of floats.
-
-    Raises:
-        InputError: naming what is wrong.
-    """
-    x, y = _knot_pairs(log_b, log_b_calibrated, "log_b", "log_b_calibrated")
-    if any(b < a for a, b in zip(y, y[1:])):
-        raise InputError("scale calibration knots log_b_calibrated must be non-decreasing (the map keeps the "
-                         "confidence's order)")
-    return x, y
 
 
 def validate_depth_knots(inverse_depth: Sequence[float], log_shift: Sequence[float]) -> tuple[list[float], list[float]]:
@@ -96,7 +58,7 @@ def validate_depth_knots(inverse_depth: Sequence[float], log_shift: Sequence[flo
     Raises:
         InputError: naming what is wrong.
     """
-    x, y = _knot_pairs(inverse_depth, log_shift, "inverse_depth_per_m", "depth_log_shift")
+    x, y = knot_pairs(inverse_depth, log_shift, "inverse_depth_per_m", "depth_log_shift")
     if x[0] <= 0:
         raise InputError("scale calibration knots inverse_depth_per_m must be positive")
     return x, y
@@ -108,55 +70,11 @@ def validate_border_shifts(log_shift: Sequence[float]) -> list[float]:
     Raises:
         InputError: naming what is wrong.
     """
-    y = _floats(log_shift, "border_log_shift")
+    y = finite_floats(log_shift, "border_log_shift")
     if len(y) < 2:
         raise InputError(f"scale calibration border_log_shift needs at least 2 values (0, 1, .. tiles from the edge), "
                          f"got {len(y)}")
     return y
-
-
-def piecewise_linear(x: torch.Tensor, knots_x: torch.Tensor, knots_y: torch.Tensor) -> torch.Tensor:
-    """The function through ``(knots_x[k], knots_y[k])``, linear between knots and constant beyond the ends.
-
-    Args:
-        x: any shape.
-        knots_x: ``(K,)`` strictly increasing, ``K >= 2``.
-        knots_y: ``(K,)`` values at the knots.
-
-    Returns:
-        The shape of ``x``; a sum of clamped hinges, so it exports to ONNX as element-wise operators.
-
-    Example:
-        >>> piecewise_linear(torch.tensor([-1.0, 0.5, 3.0]), torch.tensor([0.0, 1.0, 2.0]), torch.tensor([1.0, 3.0, 0.0]))
-        tensor([1., 2., 0.])
-    """
-    kx = knots_x.to(x.dtype)
-    ky = knots_y.to(x.dtype)
-    lo, hi = kx[:-1], kx[1:]
-    slope = (ky[1:] - ky[:-1]) / (hi - lo)
-    inside = torch.minimum(torch.maximum(x.unsqueeze(-1), lo), hi) - lo  # (..., K - 1) against the segments
-    return ky[0] + (inside * slope).sum(-1)
-
-
-def calibrate_log_scale(log_scale: torch.Tensor, knots_log_b: torch.Tensor, knots_log_b_calibrated: torch.Tensor
-                        ) -> torch.Tensor:
-    """Map predicted log scales through the scale part's knots: ``log b + s(log b)``.
-
-    Args:
-        log_scale: ``log b``, any shape (e.g. ``(B, 1, h, w)``), natural log of the relative error scale.
-        knots_log_b: ``(K,)`` strictly increasing knot positions ``x_k`` (:func:`validate_knots`).
-        knots_log_b_calibrated: ``(K,)`` non-decreasing calibrated values ``y_k``.
-
-    Returns:
-        ``log b'``, the shape of ``log_scale``: ``log b + s(log b)``, ``s`` linear between the
-        knots' shifts ``y_k - x_k`` and equal to the end shifts beyond them.
-
-    Example:
-        >>> x = torch.tensor([-5.0, -3.0]); y = torch.tensor([-4.0, -3.0])
-        >>> calibrate_log_scale(torch.tensor([-6.0, -4.0, -2.0]), x, y)
-        tensor([-5.0000, -3.5000, -2.0000])
-    """
-    return log_scale + piecewise_linear(log_scale, knots_log_b, knots_log_b_calibrated.to(knots_log_b.dtype) - knots_log_b)
 
 
 def tile_border_distance(grid: torch.Tensor) -> torch.Tensor:
