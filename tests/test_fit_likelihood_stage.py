@@ -106,7 +106,7 @@ def test_the_fused_scales_map_makes_the_correlated_fusion_state_its_error():
     before = decile_ratios(err, b)
     # correlation 0.5 between equal sigmas: the fused variance is 1.5x what independence says
     assert min(before) > 1.1
-    mapped = fit_fused_scale_map(errors, scales, bins=20)
+    mapped = fit_fused_scale_map(err, b, scales, bins=20)
     assert mapped.fit == scales.fit and mapped.model == scales.model and mapped.fused_log_b is not None
     after = decile_ratios(err, mapped.fused_scale(b))
     assert all(abs(r - 1.0) < 0.1 for r in after), after

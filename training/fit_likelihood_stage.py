@@ -38,6 +38,7 @@ fused scale before and after its map as provenance).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 import time
@@ -185,17 +186,13 @@ def fused_errors(errors: dict[str, torch.Tensor], scales: LikelihoodScales) -> t
     return err, scale
 
 
-def fit_fused_scale_map(errors: dict[str, torch.Tensor], scales: LikelihoodScales, bins: int = FUSED_BINS
+def fit_fused_scale_map(error: torch.Tensor, scale: torch.Tensor, scales: LikelihoodScales, bins: int = FUSED_BINS
                         ) -> LikelihoodScales:
     """``scales`` with the map of their fused scale (:meth:`LikelihoodScales.fused_scale`) fitted on
-    the tiles' fused errors (:func:`fused_errors`; ``bins`` equal-count bins of the scale, their
-    log factors smoothed over 3 bins)."""
-    err, b = fused_errors(errors, scales)
-    kx, ky = fit_scale_calibration(b, err, bins=bins, smooth=3)
-    return LikelihoodScales(fit=scales.fit, model=scales.model, slope_edges=scales.slope_edges,
-                            shared_bias=scales.shared_bias, bias_radius=scales.bias_radius,
-                            fused_log_b=tuple(kx.tolist()), fused_log_b_calibrated=tuple(ky.tolist()),
-                            provenance=scales.provenance)
+    the tiles' fused ``error`` and ``scale`` ``(N,)`` (:func:`fused_errors` with these ``scales``;
+    ``bins`` equal-count bins of the scale, their log factors smoothed over 3 bins)."""
+    kx, ky = fit_scale_calibration(scale, error, bins=bins, smooth=3)
+    return dataclasses.replace(scales, fused_log_b=tuple(kx.tolist()), fused_log_b_calibrated=tuple(ky.tolist()))
 
 
 def decile_ratios(error: torch.Tensor, scale: torch.Tensor, bins: int = 10) -> list[float]:
@@ -235,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
                        fused_err.numel(), f"{bins} bins" if bins >= 2 else "no map", args.fused_bins,
                        FUSED_MIN_TILES_PER_BIN)
     if bins >= 2:
-        fitted = fit_fused_scale_map(errors, fitted, bins)
+        fitted = fit_fused_scale_map(fused_err, fused_b, fitted, bins)
     wall = time.perf_counter() - t0
     counts = [int((errors["set"] == k).sum()) for k in range(4)]
     bands = fitted.band(errors["slope"])
@@ -264,9 +261,7 @@ def main(argv: list[str] | None = None) -> int:
         "wall_s": round(wall, 1),
     }
     path = Path(args.out or f"{args.model}.likelihood.json")
-    LikelihoodScales(fit=fitted.fit, model=fitted.model, slope_edges=fitted.slope_edges,
-                     shared_bias=fitted.shared_bias, bias_radius=fitted.bias_radius, fused_log_b=fitted.fused_log_b,
-                     fused_log_b_calibrated=fitted.fused_log_b_calibrated, provenance=provenance).save(path)
+    dataclasses.replace(fitted, provenance=provenance).save(path)
     logger.info("fit sigma factors %s, model sigma factors %s (slope bands at %s, %s tiles) on %d tiles (%s); fused "
                 "scale's decile ratios (most confident last) %s before its map, %s after; %.0f s; wrote %s",
                 [round(x, 4) for x in fitted.fit], [round(x, 4) for x in fitted.model], fitted.slope_edges,
