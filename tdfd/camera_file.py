@@ -29,6 +29,11 @@ A camera file holds the ``tdfd.camera`` object of CONTRACT.md section 2 (SI unit
 * ``psf_sigma_scale``: that family's RMS blur per dioptre over the one ``mu_px_per_m`` gives
   (measured with the family; 1 when absent): the calibrated ``mu`` is what the Gaussian
   relative blur measures, which for a disk lens is about 0.8x its disk's RMS radius.
+* ``psf_model``: the lens's whole defocus PSF, measured by ``tdfd calibrate --psf-model`` from a
+  focus sweep (:mod:`tdfd.calibration.psf_model`): ``shape`` (a family or a power-exponential
+  ``beta``), ``diffraction_px``, ``astigmatism``, ``astigmatism_angle_rad``, ``spherical``,
+  ``sigma_scale`` (its RMS blur over the camera's, as ``psf_sigma_scale`` for the family);
+  ``tdfd depth --likelihood-stage ... --psf-model CAM.json`` hands it to the likelihood stage.
 * ``calibration``: provenance written by ``tdfd calibrate`` (route, inputs, residuals).
 
 Other keys are kept in :attr:`CameraFile.extra` and ignored.
@@ -56,12 +61,49 @@ from .errors import CameraError
 logger = logging.getLogger(__name__)
 _WARNED: set = set()  # camera files already warned about (resolve_camera), once per process
 
-__all__ = ["CameraFile", "load_camera_file", "resolve_camera", "resolve_camera_file", "EXTRA_KEYS", "PSF_FAMILY_VALUES"]
+__all__ = ["CameraFile", "load_camera_file", "resolve_camera", "resolve_camera_file", "EXTRA_KEYS", "PSF_FAMILY_VALUES",
+           "PSF_MODEL_KEYS", "check_psf_model"]
 
 #: keys a camera file may add to the ``tdfd.camera`` object.
-EXTRA_KEYS = ("magnification_per_dpt", "ecvfl_offset_dpt", "calibration", "psf_family", "psf_sigma_scale")
+EXTRA_KEYS = ("magnification_per_dpt", "ecvfl_offset_dpt", "calibration", "psf_family", "psf_sigma_scale", "psf_model")
 #: the values ``psf_family`` may take
 PSF_FAMILY_VALUES = ("gaussian", "pillbox")
+#: the keys of a measured ``psf_model`` (:mod:`tdfd.calibration.psf_model`)
+PSF_MODEL_KEYS = ("shape", "diffraction_px", "astigmatism", "astigmatism_angle_rad", "spherical", "sigma_scale")
+
+
+def check_psf_model(data: Any) -> dict[str, Any]:
+    """A measured ``psf_model`` as plain values, checked: ``shape`` (``"gaussian"``, ``"pillbox"``
+    or a power-exponential ``beta >= 1``), ``diffraction_px >= 0``, ``0 <= astigmatism < 0.5``, a
+    finite ``astigmatism_angle_rad``, ``|spherical| < 0.5``, ``sigma_scale`` in [0.2, 5] (the PSF's
+    RMS blur over the camera's).
+
+    Raises:
+        CameraError: not a mapping of exactly those keys, or a value out of its range.
+
+    Example:
+        >>> check_psf_model({"shape": 4, "diffraction_px": 0, "astigmatism": 0.1, "astigmatism_angle_rad": 1,
+        ...                  "spherical": -0.2, "sigma_scale": 1.0})["shape"]
+        4.0
+    """
+    if not isinstance(data, dict) or set(data) != set(PSF_MODEL_KEYS):
+        raise CameraError(f"psf_model must be a mapping with exactly the keys {list(PSF_MODEL_KEYS)}, got {data!r}")
+    out: dict[str, Any] = {}
+    for k in PSF_MODEL_KEYS:
+        v = data[k]
+        if k == "shape" and v in PSF_FAMILY_VALUES:
+            out[k] = v
+            continue
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+            raise CameraError(f"psf_model {k!r} must be a finite number{' or a family' if k == 'shape' else ''}, "
+                              f"got {v!r}")
+        out[k] = float(v)
+    ok = (out["shape"] in PSF_FAMILY_VALUES or out["shape"] >= 1.0) and out["diffraction_px"] >= 0.0 \
+        and 0.0 <= out["astigmatism"] < 0.5 and abs(out["spherical"]) < 0.5 and 0.2 <= out["sigma_scale"] <= 5.0
+    if not ok:
+        raise CameraError(f"psf_model out of range (shape a family or beta >= 1, diffraction_px >= 0, "
+                          f"0 <= astigmatism < 0.5, |spherical| < 0.5, 0.2 <= sigma_scale <= 5): {data!r}")
+    return out
 
 
 def _number(data: dict, key: str, source: str) -> float:
@@ -83,6 +125,9 @@ class CameraFile:
         extra: other keys, kept and unused.
         psf_family: the lens's PSF family (``"gaussian"``, ``"pillbox"``), or ``None`` when unknown.
         psf_sigma_scale: the family's RMS blur per dioptre over the camera's (``mu``'s).
+        psf_model: the lens's whole PSF measured from a focus sweep (:func:`check_psf_model`'s
+            keys; ``tdfd calibrate --psf-model``), which the likelihood stage takes as its one
+            hypothesis; ``None`` when not measured.
     """
 
     camera: Camera
@@ -92,8 +137,11 @@ class CameraFile:
     extra: dict[str, Any] = field(default_factory=dict)
     psf_family: str | None = None
     psf_sigma_scale: float = 1.0
+    psf_model: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
+        if self.psf_model is not None:
+            object.__setattr__(self, "psf_model", check_psf_model(self.psf_model))
         if self.psf_family not in (None, *PSF_FAMILY_VALUES):
             raise CameraError(f"psf_family must be one of {PSF_FAMILY_VALUES} (or absent), got {self.psf_family!r}")
         if not 0.2 <= self.psf_sigma_scale <= 5.0:
@@ -112,6 +160,8 @@ class CameraFile:
         if self.psf_family is not None:
             out["psf_family"] = self.psf_family
             out["psf_sigma_scale"] = self.psf_sigma_scale
+        if self.psf_model is not None:
+            out["psf_model"] = dict(self.psf_model)
         if self.calibration is not None:
             out["calibration"] = self.calibration
         return out
@@ -149,7 +199,8 @@ class CameraFile:
         return cls(camera=cam, magnification_per_dpt=m, ecvfl_offset_dpt=_number(data, "ecvfl_offset_dpt", source),
                    calibration=cal if isinstance(cal, dict) else None,
                    extra={k: v for k, v in data.items() if k not in known}, psf_family=family,
-                   psf_sigma_scale=_number(data, "psf_sigma_scale", source) if "psf_sigma_scale" in data else 1.0)
+                   psf_sigma_scale=_number(data, "psf_sigma_scale", source) if "psf_sigma_scale" in data else 1.0,
+                   psf_model=data.get("psf_model"))
 
 
 def load_camera_file(path: str | os.PathLike) -> CameraFile:

@@ -5,7 +5,7 @@ r"""``tdfd depth``: depth from a DFD pair of image files with the exported ONNX 
     tdfd depth IMAGE_F1 IMAGE_F2 [--model M] [-o depth.npy|.tiff|.png] [--white-level L]
                [--full-resolution] [--threshold C] [--centre FRACTION] [--threads T]
                [--psf-family gaussian|pillbox|unknown|CAM.json] [--tiles]
-               [--likelihood-stage SCALES.json [--black-level DN]]
+               [--likelihood-stage SCALES.json [--black-level DN] [--psf-model CAM.json]]
 
 Reads single-channel 8- or 16-bit PNG/TIFF frames (or float32 TIFF in [0, 1]) with OpenCV
 (``IMREAD_UNCHANGED``), runs :class:`tdfd.runtime.DepthRuntime` (no torch), prints a
@@ -22,7 +22,9 @@ in-focus ECVFL power for that depth) and, with ``-o``, writes:
   regions greyed, with a labelled scale bar in metres.
 
 With ``--likelihood-stage`` the map is refined tile by tile by the likelihood stage
-(:mod:`tdfd.runtime_likelihood`: torch, seconds per pair), told the sensor's ``--black-level``.
+(:mod:`tdfd.runtime_likelihood`: torch, seconds per pair), told the sensor's ``--black-level``
+and, with ``--psf-model CAM.json``, the lens's whole PSF a focus sweep measured
+(``tdfd calibrate --psf-model``) instead of profiling the family's shapes.
 
 Colour (3- or 4-channel) files are rejected: DFD needs the raw single-channel sensor
 frames (convert a colour image yourself if you must; gamma-encoded JPEG-like data is not
@@ -39,9 +41,9 @@ import os
 from pathlib import Path
 from typing import Any
 
-from .errors import DTypeError, InputError, ShapeError
+from .errors import CameraError, DTypeError, InputError, ShapeError
 
-__all__ = ["register", "read_frame", "write_depth", "check_writable", "colorize_depth", "psf_family_option", "run"]
+__all__ = ["register", "read_frame", "write_depth", "check_writable", "colorize_depth", "psf_family_option", "measured_psf_model", "run"]
 
 logger = logging.getLogger(__name__)
 
@@ -79,11 +81,30 @@ def register(subparsers: Any) -> None:
                         "(the shipped model's: models/reference.likelihood.json)")
     p.add_argument("--black-level", type=float, default=0.0,
                    help="the sensor's black level in raw values (default 0), for --likelihood-stage")
+    p.add_argument("--psf-model", default=None, metavar="CAM.json",
+                   help="a camera JSON from 'tdfd calibrate --psf-model': the lens's whole PSF measured from a focus "
+                        "sweep, the likelihood stage's one PSF (default: profiled over the family's shapes)")
     p.add_argument("--psf-family", default="exported", metavar="FAMILY",
                    help="the lens's PSF family the model's CNN is told: gaussian, pillbox, unknown, a camera JSON "
                         "from 'tdfd calibrate' (its measured psf_family), or exported (default: the family the ONNX "
                         "file was exported with); only for a model with the family input")
     p.set_defaults(func=run)
+
+
+def measured_psf_model(path: str) -> dict:
+    """The ``psf_model`` of the camera file at ``path`` (``--psf-model``).
+
+    Raises:
+        CameraError: a file that cannot be read, or one without a measured ``psf_model`` (the
+            message says how to measure one).
+    """
+    from .camera_file import load_camera_file
+
+    cf = load_camera_file(path)
+    if cf.psf_model is None:
+        raise CameraError(f"{path} has no measured psf_model: measure one with 'tdfd calibrate ... --psf-model' "
+                          f"on capture folders that hold a focus sweep")
+    return cf.psf_model
 
 
 def psf_family_option(text: str) -> str | None:
@@ -275,6 +296,8 @@ def run(args: argparse.Namespace) -> int:
     model = Path(args.model) if args.model else default_model_path()
     rt = DepthRuntime(model, threads=args.threads, psf_family=psf_family_option(args.psf_family))
     res = rt(f1, f2, white_level=args.white_level, pooled=not args.tiles)
+    if args.psf_model and not args.likelihood_stage:
+        raise InputError("--psf-model is the likelihood stage's PSF; give --likelihood-stage SCALES.json too")
     if args.likelihood_stage:
         if args.tiles:
             raise InputError("--likelihood-stage refines the depth map; it cannot be combined with --tiles")
@@ -282,7 +305,8 @@ def run(args: argparse.Namespace) -> int:
 
         white = args.white_level if args.white_level is not None else (
             float(np.iinfo(f1.dtype).max) if np.issubdtype(f1.dtype, np.integer) else 1.0)
-        stage = stage_for_runtime(rt, args.likelihood_stage, args.black_level / white)
+        stage = stage_for_runtime(rt, args.likelihood_stage, args.black_level / white,
+                                  psf_model=measured_psf_model(args.psf_model) if args.psf_model else None)
         res = refine_result(rt, stage, f1, f2, res, args.white_level)
     h, w = res.depth.shape
     valid = res.valid(args.threshold)

@@ -3,7 +3,8 @@
 ``tdfd depth F1 F2 --likelihood-stage SCALES.json`` runs the ONNX file
 (:class:`tdfd.runtime.DepthRuntime`), then :class:`tdfd.dfd.likelihood_stage.LikelihoodStage`
 (torch) on the same normalised frames, the file's camera, grid and confidence scale, the
-lens's PSF family the CNN is told (``--psf-family``; unknown: every shape) and the sigma factors
+lens's PSF family the CNN is told (``--psf-family``; unknown: every shape), or the whole PSF a
+focus sweep measured (``--psf-model CAM.json``, :mod:`tdfd.calibration.psf_model`), and the sigma factors
 of ``SCALES.json`` (``python -m training.fit_likelihood_stage``; the shipped model's:
 ``models/reference.likelihood.json``). The best map of the result (the pooled one, else the
 tiles') is replaced by the stage's fused map; each tile's own estimate stays as the file gave
@@ -26,6 +27,7 @@ import torch
 from .contract import MODEL_KEY
 from .dfd.inverse_variance import LikelihoodScales
 from .dfd.likelihood_stage import LikelihoodStage
+from .dfd.psf_hypotheses import PsfHypothesis
 from .errors import InputError, ModelError
 from .runtime import DepthResult, DepthRuntime
 
@@ -34,16 +36,20 @@ log = logging.getLogger(__name__)
 __all__ = ["stage_for_runtime", "refine_result"]
 
 
-def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: float = 0.0) -> LikelihoodStage:
+def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: float = 0.0,
+                      psf_model: dict | None = None) -> LikelihoodStage:
     """The likelihood stage for ``rt``'s file: its camera, grid, confidence scale and told family.
 
     Args:
         rt: the runtime whose results the stage refines.
         scales_path: the sigma factors (:meth:`~tdfd.dfd.inverse_variance.LikelihoodScales.load`).
         black_level: the frames' black level as a fraction of full scale (``[0, 1)``).
+        psf_model: the lens's PSF measured from a focus sweep (a camera file's ``psf_model``,
+            ``tdfd calibrate --psf-model``): the stage's one hypothesis instead of the family's.
 
     Raises:
         InputError: a file with focus breathing, a runtime for another camera, a bad black level.
+        CameraError: a ``psf_model`` that is not valid.
         ModelError: a scales file that cannot be read, or a file without a positive
             ``confidence_scale`` in its metadata.
     """
@@ -58,8 +64,9 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
     b0 = meta.get("confidence_scale") if isinstance(meta, dict) else None
     if not isinstance(b0, (int, float)) or not b0 > 0:
         raise ModelError(f"{rt.path} has no positive confidence_scale in its {MODEL_KEY!r} metadata")
+    hypotheses = None if psf_model is None else (PsfHypothesis.from_dict(psf_model),)
     return LikelihoodStage(rt.camera, rt.tile, rt.stride, float(b0), scales=LikelihoodScales.load(scales_path),
-                           family=rt.psf_family, black_level=black_level)
+                           family=rt.psf_family, hypotheses=hypotheses, black_level=black_level)
 
 
 def refine_result(rt: DepthRuntime, stage: LikelihoodStage, image_f1: np.ndarray, image_f2: np.ndarray,

@@ -7,7 +7,9 @@ several scenes calibrated together (one fit: each scene's own in-focus powers, o
 one breathing): a self-calibration from one scene carries that scene's error in K (about
 1-2 %), three scenes at different distances average it down (docs/CALIBRATION.md). Writes the camera JSON
 (``tdfd.camera`` contract + ``magnification_per_dpt`` + ``calibration`` provenance), the
-fit plot ``CAM.png`` beside it, and prints the fitted values and residuals.
+fit plot ``CAM.png`` beside it, and prints the fitted values and residuals. With
+``--psf-model`` it also measures the lens's whole PSF from the sweeps
+(:mod:`tdfd.calibration.psf_model`), writes it as ``psf_model`` and draws it in ``CAM_psf.png``.
 """
 
 from __future__ import annotations
@@ -39,6 +41,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--psf-family", choices=("measure", "gaussian", "pillbox", "unknown"), default="measure",
                    help="the lens's PSF family written to the camera file: measured from the scenes with three or more "
                         "frames (default; left out when they do not decide it), given, or left out")
+    p.add_argument("--psf-model", action="store_true",
+                   help="also measure the lens's whole PSF (shape, astigmatism, spherical aberration) from the scenes "
+                        "with three or more frames (a focus sweep that brackets focus; frames repeated at a power are "
+                        "averaged), written as psf_model for the likelihood stage (tdfd depth --psf-model); tens of "
+                        "seconds")
     p.add_argument("--max-mu-uncertainty", type=_fraction, default=None, metavar="FRACTION",
                    help="known-distance route: refuse pairs that leave mu more uncertain than this relative standard "
                         "uncertainty (default 0.05): a target near the distance where the pair blurs both frames "
@@ -83,6 +90,25 @@ def _psf_family(choice: str, frames: Sequence[Any], camera_file: Any) -> tuple[s
                                f"{fit.regions} regions), blur scale {scale:.3f}")
 
 
+def _psf_model(frames: Sequence[Any], result: Any) -> tuple[str, Any]:
+    """Measure the PSF model into ``result.camera_file`` (and its provenance); a line saying what
+    came of it, and the fit.
+
+    Raises:
+        InputError: the captures hold no scene with three powers.
+    """
+    from .psf_model import psf_model_from_captures  # lazily: the fit needs torch
+
+    fit = psf_model_from_captures(frames, result.camera_file)
+    result.camera_file = replace(result.camera_file, psf_model=fit.to_dict())
+    result.camera_file.calibration["psf_model"] = fit.summary()  # type: ignore[index]
+    h = fit.hypothesis
+    shape = h.shape if isinstance(h.shape, str) else f"beta {h.shape:.2f}"
+    return (f"{shape}, astigmatism {h.astigmatism:.3f} at {h.astigmatism_angle:.2f} rad, spherical {h.spherical:+.3f}, "
+            f"blur scale {h.sigma_scale:.3f} (the best plain family fits {fit.family_cost_ratio:.2f}x worse over "
+            f"{fit.regions} regions)"), fit
+
+
 def run(args: argparse.Namespace) -> int:
     from ..camera_file import load_camera_file
     from ..capture.folder import read_folder
@@ -104,6 +130,9 @@ def run(args: argparse.Namespace) -> int:
     if family is not None:
         result.camera_file = replace(result.camera_file, psf_family=family, psf_sigma_scale=scale)
     result.camera_file.calibration["psf_family"] = family_line  # type: ignore[index]
+    model_line, psf_fit = "not measured (no --psf-model)", None
+    if args.psf_model:
+        model_line, psf_fit = _psf_model(frames, result)
     out = result.camera_file.write(args.output)
     s = result.summary()
     print(f"calibrated {len(frames)} frames of {', '.join(map(str, args.folders))} ({route} route) -> {out}")
@@ -118,12 +147,17 @@ def run(args: argparse.Namespace) -> int:
           f"power offset vs datasheet {result.camera_file.calibration['power_offset_vs_datasheet_dpt']:+.4f} dpt")
     print(f"  breathing: magnification_per_dpt = {result.magnification_per_dpt:.5g} ({100 * result.magnification_per_dpt:.3f} %/dpt)")
     print(f"  PSF family: {family_line}")
+    print(f"  PSF model: {model_line}")
     for kind, rms in s["residual_rms_dpt"].items():
         print(f"  residuals {kind}: RMS {rms:.4f} dpt over {s['counts'][kind]}" if rms is not None else f"  residuals {kind}: none")
     log.info("calibration summary: %s", json.dumps(s))
     if not args.no_plot:
-        from .plot import plot_calibration
+        from .plot import plot_calibration, plot_psf_model
 
         png = plot_calibration(result, Path(args.output).with_suffix(".png"))
         print(f"  fit plot: {png}")
+        if psf_fit is not None:
+            out_png = Path(args.output)
+            png = plot_psf_model(psf_fit, out_png.with_name(out_png.stem + "_psf.png"))
+            print(f"  PSF plot: {png}")
     return 0

@@ -3,19 +3,24 @@
 Three panels: the sharpness curves of the sweep with each region's fitted in-focus power
 (self-calibration) or the pairs' blur differences against inverse distance with the
 fitted line (known distances); the blur-difference model against the measurements; the
-breathing fit (log magnification against power difference).
+breathing fit (log magnification against power difference). :func:`plot_psf_model` draws the
+PSF a sweep measured (``tdfd calibrate --psf-model``) beside the Gaussian of the same blur.
 """
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from .fit import CalibrationResult
 
-__all__ = ["plot_calibration"]
+__all__ = ["plot_calibration", "plot_psf_model", "PSF_PLOT_BLURS_PX"]
+
+#: the camera's blurs (px) at which :func:`plot_psf_model` draws the kernels
+PSF_PLOT_BLURS_PX = (-3.0, -2.0, -1.0, 1.0, 2.0, 3.0)
 
 
 def plot_calibration(result: CalibrationResult, path: str | os.PathLike) -> Path:
@@ -83,6 +88,41 @@ def plot_calibration(result: CalibrationResult, path: str | os.PathLike) -> Path
     fig.suptitle(f"tdfd calibrate ({result.route}): mu = {cam.mu_px_per_m:.4g} px/m, "
                  f"f0 = {1000 * cam.fixed_focal_length_m:.4f} mm; in-focus offset B: {result.offset_source}",
                  fontsize=9)
+    fig.tight_layout()
+    p = Path(path)
+    fig.savefig(p, dpi=90)
+    plt.close(fig)
+    return p
+
+
+def plot_psf_model(fit: Any, path: str | os.PathLike) -> Path:
+    """Write the measured PSF (a :class:`~tdfd.calibration.psf_model.PsfModelFit`) as a PNG: its
+    kernels at :data:`PSF_PLOT_BLURS_PX` of the camera's blur (top row) over the plain Gaussian of
+    the same blur (bottom row), one colour scale per column; returns the path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import torch
+
+    from ..dfd.psf_hypotheses import PsfHypothesis
+
+    h = fit.hypothesis
+    sigma = torch.tensor(PSF_PLOT_BLURS_PX, dtype=torch.float64)
+    size = max(h.kernel_size(max(abs(v) for v in PSF_PLOT_BLURS_PX)), 9)
+    rows = (h.kernels(sigma, size).numpy(), PsfHypothesis("gaussian").kernels(sigma, size).numpy())
+    fig, ax = plt.subplots(2, len(PSF_PLOT_BLURS_PX), figsize=(2.2 * len(PSF_PLOT_BLURS_PX), 5.4))
+    for j, s in enumerate(PSF_PLOT_BLURS_PX):
+        top = max(rows[0][j].max(), rows[1][j].max())
+        for i, label in enumerate(("measured", "Gaussian")):
+            ax[i, j].imshow(rows[i][j], cmap="magma", vmin=0.0, vmax=top, interpolation="nearest")
+            ax[i, j].set_xticks([])
+            ax[i, j].set_yticks([])
+            ax[i, j].set_title(f"{label}, {s:+.0f} px", fontsize=8)
+    shape = h.shape if isinstance(h.shape, str) else f"beta {h.shape:.2f}"
+    fig.suptitle(f"PSF from the sweep: {shape}, astigmatism {h.astigmatism:.3f} at {h.astigmatism_angle:.2f} rad, "
+                 f"spherical {h.spherical:+.3f}, blur scale {h.sigma_scale:.3f}; the best plain family fits "
+                 f"{fit.family_cost_ratio:.2f}x worse ({fit.regions} regions)", fontsize=9)
     fig.tight_layout()
     p = Path(path)
     fig.savefig(p, dpi=90)

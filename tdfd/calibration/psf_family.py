@@ -62,7 +62,7 @@ from ..errors import InputError
 from .fit import group_scenes
 
 __all__ = ["PsfFamilyFit", "psf_family_from_frames", "psf_family_from_captures", "MIN_FAMILY_RATIO",
-           "MIN_FAMILY_FRAMES", "MAX_FAMILY_FRAMES", "MAX_FAMILY_REGIONS"]
+           "MIN_FAMILY_FRAMES", "MAX_FAMILY_FRAMES", "MAX_FAMILY_REGIONS", "central_regions"]
 
 log = logging.getLogger(__name__)
 
@@ -121,15 +121,15 @@ class PsfFamilyFit:
                 "in_focus_power_dpt": dict(self.in_focus_power_dpt), "sigma_scale": dict(self.sigma_scale)}
 
 
-def _regions(shape: tuple[int, int], region: int) -> list[Roi]:
-    """Non-overlapping ``region`` px squares tiling the frame's centre, at most
-    :data:`MAX_FAMILY_REGIONS` of them (the nearest the centre)."""
+def central_regions(shape: tuple[int, int], region: int, limit: int = MAX_FAMILY_REGIONS) -> list[Roi]:
+    """Non-overlapping ``region`` px squares tiling the frame's centre, at most ``limit`` of
+    them (the nearest the centre first)."""
     h, w = shape
     ny, nx = h // region, w // region
     y0, x0 = (h - ny * region) // 2, (w - nx * region) // 2
     rois = [Roi(x0 + j * region, y0 + i * region, region, region) for i in range(ny) for j in range(nx)]
     rois.sort(key=lambda r: (r.x + r.w / 2 - w / 2) ** 2 + (r.y + r.h / 2 - h / 2) ** 2)
-    return rois[:MAX_FAMILY_REGIONS]
+    return rois[:limit]
 
 
 def _fit_scale(search: Any, roi: Roi, family: str, frames: list, m: float) -> float:
@@ -200,7 +200,7 @@ def psf_family_from_frames(scenes: Sequence[Sequence[tuple[np.ndarray, float]]],
                       for p, im in frames]
         span = (frames[0][0], frames[-1][0])  # a sweep brackets focus; steps of a quarter pixel of blur
         coarse = SEARCH_STEP_PX / sigma_px_per_dpt(camera)
-        rois = _regions(shape, region)
+        rois = central_regions(shape, region)
 
         def search(roi: Roi, family: str, scale: float, used: list = registered):
             return cross_blur_focus(used, camera, roi, span_dpt=span, shapes=(family,), coarse_dpt=coarse,

@@ -34,6 +34,7 @@ import torch
 from ..breathing import magnify
 from ..camera_file import CameraFile
 from ..errors import InputError
+from ..optics.aberrated_psf import PSFModel
 from ..optics.psf import PSFShape
 from ..optics.render import defocus_uniform
 from ..optics.thin_lens import blur_radius_from_power
@@ -52,7 +53,8 @@ class SimulatedRig:
         size: frame ``(H, W)`` in pixels.
         seed: seed of the texture and of the sensor noise (frame ``k`` uses ``seed + 1 + k``).
         texture: texture family of :mod:`tdfd.textures` (a rich one by default).
-        psf: PSF shape of the simulated lens (the analytic estimator assumes ``"gaussian"``).
+        psf: PSF shape of the simulated lens (the analytic estimator assumes ``"gaussian"``), or a
+            whole :class:`~tdfd.optics.aberrated_psf.PSFModel` (diffraction and aberrations).
         bits: ADC bit depth; frames are written as 16-bit PNGs with this white level.
         full_well_e, read_noise_e, black_level_dn, exposure: see :class:`~tdfd.sensor.SensorModel`.
         noise: draw sensor noise.
@@ -60,7 +62,7 @@ class SimulatedRig:
     """
 
     def __init__(self, true_camera: CameraFile, distance_m: float, size: tuple[int, int] = (256, 256),
-                 seed: int = 0, texture: str = "dead_leaves", psf: PSFShape = "gaussian", bits: int = 12,
+                 seed: int = 0, texture: str = "dead_leaves", psf: PSFShape | PSFModel = "gaussian", bits: int = 12,
                  full_well_e: float = 20000.0, read_noise_e: float = 3.0, black_level_dn: float = 64.0,
                  exposure: float = 0.8, noise: bool = True, margin: int = 32) -> None:
         if not np.isfinite(distance_m) or distance_m <= 0:
@@ -100,7 +102,11 @@ class SimulatedRig:
             ``white_level``.
         """
         sigma = torch.tensor([self.sigma_px(commanded_dpt)], dtype=torch.float64)
-        blurred = defocus_uniform(self.sharp, sigma, self.psf)[0, 0].numpy()
+        if isinstance(self.psf, PSFModel):  # point-symmetric kernels: correlation is convolution
+            k = self.psf.kernels(sigma)
+            blurred = torch.nn.functional.conv2d(self.sharp, k[None], padding=k.shape[-1] // 2)[0, 0].numpy()
+        else:
+            blurred = defocus_uniform(self.sharp, sigma, self.psf)[0, 0].numpy()
         scale = self.true_camera.scale_at(self.actual_power_dpt(commanded_dpt))
         frame = magnify(blurred, scale, out_shape=self.size)
         g = torch.Generator().manual_seed(self.seed + 1 + self.frames)

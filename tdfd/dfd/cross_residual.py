@@ -40,8 +40,9 @@ import torch
 
 from ..errors import InputError, ShapeError
 
-__all__ = ["TAPER_FRACTION", "tukey_window", "valid_residual", "cross_residual_nll", "tile_cross_residual_nll",
-           "parabolic_minima", "argmin_parabolic", "independent_bins", "curvature_sigma"]
+__all__ = ["TAPER_FRACTION", "tukey_window", "kernel_spectra", "tapered_periodograms", "band_weight", "valid_residual",
+           "cross_residual_nll", "tile_cross_residual_nll", "parabolic_minima", "argmin_parabolic", "independent_bins",
+           "curvature_sigma"]
 
 TAPER_FRACTION = 0.1
 
@@ -87,7 +88,7 @@ def _check_noise(*nus: torch.Tensor | float) -> None:
             raise InputError(f"noise variances must be finite and > 0, got {nu}")
 
 
-def _kernel_spectra(k: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+def kernel_spectra(k: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
     """``rfft2`` of centred ``(Q, n, n)`` kernels on a ``shape`` grid."""
     n = k.shape[-1]
     pad = torch.zeros(k.shape[0], *shape, dtype=torch.float64)
@@ -106,20 +107,20 @@ def valid_residual(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor, k2: tor
         raise ShapeError(f"frames of {h}x{w} px are smaller than the {n}-px kernels")
     y1, y2, k1, k2 = (t.to(torch.float64) for t in (y1, y2, k1, k2))
     F1, F2 = torch.fft.rfft2(y1), torch.fft.rfft2(y2)
-    K1, K2 = _kernel_spectra(k1, (h, w)), _kernel_spectra(k2, (h, w))
+    K1, K2 = kernel_spectra(k1, (h, w)), kernel_spectra(k2, (h, w))
     r = torch.fft.irfft2(K2 * F1[None] - K1 * F2[None], s=(h, w))  # circular; the valid part is linear
     half = n // 2
     return r[:, half: h - half, half: w - half]
 
 
-def _tapered_periodograms(k1: torch.Tensor, k2: torch.Tensor, taper: torch.Tensor, model_taper: bool
+def tapered_periodograms(k1: torch.Tensor, k2: torch.Tensor, taper: torch.Tensor, model_taper: bool
                           ) -> tuple[torch.Tensor, torch.Tensor]:
     """The expected periodograms of the tapered residual of unit noise in frame 1 (``|K2|^2``
     through the taper) and in frame 2 (``|K1|^2`` through it): ``P~ = nu1 * A + nu2 * B``."""
     mh, mw = taper.shape
     out = []
     for k in (k2, k1):
-        power = _kernel_spectra(k.to(torch.float64), (mh, mw)).abs() ** 2
+        power = kernel_spectra(k.to(torch.float64), (mh, mw)).abs() ** 2
         if model_taper:
             big = torch.fft.fft2(taper, s=(2 * mh, 2 * mw))
             acw = torch.fft.ifft2(big.abs() ** 2).real / (mh * mw)  # the taper's autocorrelation, 1 at lag 0
@@ -130,7 +131,7 @@ def _tapered_periodograms(k1: torch.Tensor, k2: torch.Tensor, taper: torch.Tenso
     return out[0], out[1]
 
 
-def _band_weight(mh: int, mw: int, band: float) -> torch.Tensor:
+def band_weight(mh: int, mw: int, band: float) -> torch.Tensor:
     """Each half-spectrum bin's count in the band (2 for a bin standing for its mirror, 1 for
     the self-conjugate columns, 0 outside; the lowest bins, below 1.5 cycles per patch, out)."""
     fy = torch.fft.fftfreq(mh, dtype=torch.float64)[:, None]
@@ -156,7 +157,7 @@ def independent_bins(tile: int, band: float = 0.25) -> float:
         raise ShapeError(f"tiles must be at least 16 px, got {tile}")
     if not (0.0 < band <= 0.5):
         raise InputError(f"band must lie in (0, 0.5] cycles/px, got {band}")
-    return float(_band_weight(tile, tile, band).sum()) / 2.0
+    return float(band_weight(tile, tile, band).sum()) / 2.0
 
 
 def cross_residual_nll(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor, k2: torch.Tensor, nu1: float,
@@ -186,8 +187,8 @@ def cross_residual_nll(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor, k2:
     taper = tukey_window(mh, mw)
     taper = taper / float((taper ** 2).mean().sqrt())
     R = torch.fft.rfft2(v * taper)
-    a, b = _tapered_periodograms(k1, k2, taper, model_taper)
-    weight = _band_weight(mh, mw, band)
+    a, b = tapered_periodograms(k1, k2, taper, model_taper)
+    weight = band_weight(mh, mw, band)
     terms = R.abs() ** 2 / (mh * mw) / (nu1 * a + nu2 * b).clamp_min(1e-300)
     return (terms * weight).sum((-1, -2)) / weight.sum()
 
@@ -244,7 +245,7 @@ def tile_cross_residual_nll(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor
         return out
     taper = tukey_window(tile, tile, fraction)
     taper = taper / float((taper ** 2).mean().sqrt())
-    weight = _band_weight(tile, tile, band)
+    weight = band_weight(tile, tile, band)
     m = tile + 2 * half  # each tile's region
     rows = torch.tensor([r - half for r, _ in origins])[:, None] + torch.arange(m)[None]  # (T, m)
     cols = torch.tensor([c - half for _, c in origins])[:, None] + torch.arange(m)[None]
@@ -254,8 +255,8 @@ def tile_cross_residual_nll(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor
     used = pairs[:, 0].unique()
     slot = torch.full((k1.shape[0],), -1, dtype=torch.long)
     slot[used] = torch.arange(len(used))
-    K1, K2 = _kernel_spectra(k1[used], (m, m)), _kernel_spectra(k2[used], (m, m))
-    a, b = _tapered_periodograms(k1[used], k2[used], taper, True)  # (Q', tile, tile // 2 + 1)
+    K1, K2 = kernel_spectra(k1[used], (m, m)), kernel_spectra(k2[used], (m, m))
+    a, b = tapered_periodograms(k1[used], k2[used], taper, True)  # (Q', tile, tile // 2 + 1)
     for start in range(0, len(pairs), chunk):
         qi, ti = pairs[start: start + chunk, 0], pairs[start: start + chunk, 1]
         j = slot[qi]

@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import torch
 from torch import nn
@@ -207,7 +208,7 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
     if not hyps:
         raise InputError("the stage needs at least one PSF hypothesis")
     b, _, height, width = image_f1.shape
-    half = kernel_side(camera, hyps, inverse_depth_grid(camera, seed_window, q_step), max_kernel) // 2
+    half = kernel_side(camera, hyps, inverse_depth_grid(camera, seed_window, q_step), max_kernel, tile) // 2
     valid = valid_tiles(height, width, tile, stride, half)
     ii, jj = valid.nonzero(as_tuple=True)
     origins = [(int(i) * stride, int(j) * stride) for i, j in zip(ii, jj)]
@@ -258,18 +259,26 @@ class LikelihoodStage(nn.Module):
         family: the measured PSF family (``"gaussian"``, ``"pillbox"``; ``None`` or
             ``"unknown"``: every shape).
         wavelength_m: the diffraction hypothesis's wavelength.
+        hypotheses: the PSFs to profile over instead of the family's, e.g. the one a focus sweep
+            measured (:func:`tdfd.calibration.psf_model.psf_model_from_frames`, a camera file's
+            ``psf_model``: :meth:`~tdfd.dfd.psf_hypotheses.PsfHypothesis.from_dict`).
         black_level, seed_window, q_step, band, max_kernel, profile_tiles: as for :func:`likelihood_stage`.
     """
 
     def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, confidence_scale: float = 0.01, *,
                  scales: LikelihoodScales = LikelihoodScales(), family: str | None = None,
-                 wavelength_m: float = WAVELENGTH_M, black_level: float = 0.0, seed_window: float = SEED_WINDOW,
-                 q_step: float = Q_STEP, band: float = 0.25, max_kernel: int = 65,
-                 profile_tiles: int = PROFILE_TILES) -> None:
+                 wavelength_m: float = WAVELENGTH_M, hypotheses: Sequence[PsfHypothesis] | None = None,
+                 black_level: float = 0.0, seed_window: float = SEED_WINDOW, q_step: float = Q_STEP,
+                 band: float = 0.25, max_kernel: int = 65, profile_tiles: int = PROFILE_TILES) -> None:
         super().__init__()
         self.camera, self.tile, self.stride = camera, int(tile), int(stride)
         self.confidence_scale, self.scales = float(confidence_scale), scales
-        self.hypotheses = psf_hypotheses(camera, family, wavelength_m)
+        if hypotheses is not None:
+            self.hypotheses = tuple(hypotheses)
+            if not self.hypotheses or not all(isinstance(h, PsfHypothesis) for h in self.hypotheses):
+                raise InputError(f"hypotheses must be one or more PsfHypothesis, got {hypotheses!r}")
+        else:
+            self.hypotheses = psf_hypotheses(camera, family, wavelength_m)
         self.options = dict(black_level=float(black_level), seed_window=float(seed_window), q_step=float(q_step),
                             band=float(band), max_kernel=int(max_kernel), profile_tiles=int(profile_tiles))
         inverse_depth_grid(camera, seed_window, q_step)  # bad options fail here, not on the first pair

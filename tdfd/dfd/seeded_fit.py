@@ -87,11 +87,16 @@ def seed_mask(grid: torch.Tensor, seed_q: torch.Tensor, window: float = SEED_WIN
     return near
 
 
-def kernel_side(camera: Camera, hypotheses: Sequence[PsfHypothesis], grid: torch.Tensor, max_kernel: int) -> int:
+def kernel_side(camera: Camera, hypotheses: Sequence[PsfHypothesis], grid: torch.Tensor, max_kernel: int,
+                tile: int | None = None) -> int:
     """The odd kernel side the fit uses: what the largest blur on ``grid`` needs under any
-    hypothesis, at most ``max_kernel``."""
+    hypothesis, at most ``max_kernel`` and, given the ``tile``, smaller than it (a tile's residual
+    spectrum holds no larger kernel; larger blurs, e.g. an aberrated PSF far from focus, are
+    truncated and renormalised)."""
     if max_kernel < 3 or max_kernel % 2 == 0:
         raise InputError(f"max_kernel must be odd and >= 3, got {max_kernel}")
+    if tile is not None:
+        max_kernel = min(max_kernel, tile - 1 if tile % 2 == 0 else tile - 2)
     smax = max(float(s.abs().max()) for s in camera_sigmas(camera, 1.0 / grid))
     return min(max(h.kernel_size(smax) for h in hypotheses), max_kernel) | 1
 
@@ -149,7 +154,7 @@ def seeded_tile_fit(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, origins:
         raise InputError(f"profile_tiles must be >= 1, got {profile_tiles}")
     grid = inverse_depth_grid(camera, window, step)
     mask = seed_mask(grid, seed_q.to(torch.float64), window)
-    size = kernel_side(camera, hypotheses, grid, max_kernel)
+    size = kernel_side(camera, hypotheses, grid, max_kernel, tile)
     unit = torch.ones(len(origins), dtype=torch.float64)
 
     def minima(hyp: PsfHypothesis, tiles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

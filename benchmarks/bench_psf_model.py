@@ -1,0 +1,321 @@
+r"""The lens's whole PSF measured from a focus sweep, and the likelihood stage told it (issue 19).
+
+Run from the repository root::
+
+    .venv/bin/python -m benchmarks.bench_psf_model [--samples 256] [--world full] [--structure 16]
+        [--frames-per-power 2] [--no-write]
+
+Every sample of the benchmarks has its own lens (``data_synth``'s draw: a shape between Gaussian
+and disk, diffraction, astigmatism, spherical aberration). Here each is calibrated as a user
+calibrates theirs: a focus sweep of a band-limited chart at 0.5 m through that lens
+(:class:`tdfd.capture.sim.SimulatedRig`: 256x256, 12-bit, shot and read noise), 7 powers over
++-3 px of blur, ``--frames-per-power`` frames at each averaged, fitted by
+:func:`tdfd.calibration.psf_model.psf_model_from_frames` on its 2 central 128-px regions. Then
+three likelihood stages (:mod:`tdfd.dfd.likelihood_stage`) run on the sample's pair after the
+shipped model, with the same scales file (``models/reference.likelihood.json``) and the same
+model map:
+
+- ``profiled``: the stage as shipped, the PSF profiled over every shape, with and without the
+  working f-number's diffraction;
+- ``calibrated``: the sweep's PSF as its one hypothesis (``tdfd depth --psf-model CAM.json``);
+- ``told``: the sample's true PSF as its one hypothesis (the oracle a calibration aims at).
+
+Reports the calibration's error (the kernels at +-1, +-2, +-3 px of blur against the true
+lens's without its diffraction, which the sweep cannot see: relative L2; astigmatism and
+spherical weight; the profiled stage's chosen PSF beside it) and each stage's median error on the
+planes' 25 interior tiles (per tile and per plane, paired bootstrap over planes) and on the
+structure benchmark's first scenes (away from occlusion edges), and writes section
+``psf_model`` of docs/BENCHMARKS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import sys
+import time
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from benchmarks.bench_bound import psf_model
+from benchmarks.bench_likelihood_stage import paired_bootstrap
+from benchmarks.bench_plane_oracle import CLEAN_WORLD
+from benchmarks.bench_refinement import BENCH_SEED, bench_tiles
+from benchmarks.bench_structure import STRUCTURE_SEED
+from benchmarks.bench_tile_oracle import interior_origins
+from benchmarks.depth_edges import edge_tiles
+from benchmarks.report import ROOT, comma_choices, machine, markdown_table, update_section
+from benchmarks.stage_uncertainty import decile_summary, relative_inverse_depth_error
+from data_synth import DefocusPairDataset
+from tdfd.autofocus.evidence import sigma_px_per_dpt
+from tdfd.calibration.psf_model import PsfModelFit, psf_model_from_frames
+from tdfd.camera import Camera
+from tdfd.camera_file import CameraFile
+from tdfd.capture.sim import SimulatedRig
+from tdfd.dfd.inverse_variance import LikelihoodScales
+from tdfd.dfd.likelihood_stage import LikelihoodStage
+from tdfd.dfd.psf_hypotheses import PsfHypothesis
+from tdfd.model import DFDModel
+from tdfd.optics.aberrated_psf import PSFModel
+from training.config import EvalConfig
+from training.data import STRUCTURE_LAYOUTS, textured_scenes
+from training.fit_likelihood_stage import black_levels
+
+__all__ = ["sweep_fit", "kernel_error", "STAGES", "main"]
+
+#: the stages compared, in the tables' order
+STAGES = ("profiled", "calibrated", "told")
+#: the sweep: powers, half-span in px of blur, chart distance (m), frame size, regions, seed offset
+SWEEP_POWERS = 7
+SWEEP_HALF_SPAN_PX = 3.0
+SWEEP_DISTANCE_M = 0.5
+SWEEP_SIZE = (256, 256)
+SWEEP_REGIONS = 2
+SWEEP_SEED = 7_000_000
+#: the blurs (px) at which the kernels are compared
+KERNEL_SIGMAS = (-3.0, -2.0, -1.0, 1.0, 2.0, 3.0)
+
+
+def sweep_fit(camera: Camera, lens: PSFModel, seed: int, frames_per_power: int) -> PsfModelFit:
+    """The PSF a focus sweep of a band-limited chart through ``lens`` gives (module docstring)."""
+    rig = SimulatedRig(CameraFile(camera), SWEEP_DISTANCE_M, size=SWEEP_SIZE, seed=seed, texture="bandlimited",
+                       psf=lens)
+    centre, half = rig.in_focus_command_dpt(), SWEEP_HALF_SPAN_PX / sigma_px_per_dpt(camera)
+    frames = [(rig.capture(p)[0].astype(np.float64), float(p))
+              for p in np.linspace(centre - half, centre + half, SWEEP_POWERS) for _ in range(frames_per_power)]
+    return psf_model_from_frames([frames], camera, region=128, max_regions=SWEEP_REGIONS, max_evaluations=250)
+
+
+def kernel_error(fitted: PsfHypothesis, lens: PSFModel) -> float:
+    """The largest relative L2 distance over :data:`KERNEL_SIGMAS` between ``fitted``'s kernels (its
+    blur scale included) and the true ``lens``'s, both without diffraction (a blur common to every frame, which a sweep
+    cannot see and the stage's likelihood does not depend on)."""
+    sig = torch.tensor(KERNEL_SIGMAS, dtype=torch.float64)
+    bare = PsfHypothesis(fitted.shape, 0.0, fitted.astigmatism, fitted.astigmatism_angle, fitted.spherical,
+                         fitted.sigma_scale)
+    truth = PSFModel(lens.shape, 0.0, lens.astigmatism, lens.astigmatism_angle, lens.spherical)
+    size = max(bare.kernel_size(3.0), truth.kernel_size(3.0))
+    a, b = bare.kernels(sig, size), truth.kernels(sig, size)
+    return float(((a - b).norm(dim=(-1, -2)) / b.norm(dim=(-1, -2))).max())
+
+
+def _hypothesis(lens: PSFModel) -> PsfHypothesis:
+    return PsfHypothesis(lens.shape, lens.diffraction_sigma_px, lens.astigmatism, lens.astigmatism_angle,
+                         lens.spherical)
+
+
+def _stages(model: DFDModel, scales: LikelihoodScales, fit: PsfModelFit, lens: PSFModel) -> dict[str, LikelihoodStage]:
+    return {"profiled": LikelihoodStage.for_model(model, scales=scales),
+            "calibrated": LikelihoodStage.for_model(model, scales=scales, hypotheses=(fit.hypothesis,)),
+            "told": LikelihoodStage.for_model(model, scales=scales, hypotheses=(_hypothesis(lens),))}
+
+
+def plane_rows(model: DFDModel, scales: LikelihoodScales, samples: int, world: str, frames_per_power: int
+               ) -> list[dict]:
+    """Per plane (0.3-1.0 m) of the refinement benchmark's first ``samples``: its interior tiles'
+    true, model and stages' inverse depths and confidences, and its lens's calibration."""
+    over = CLEAN_WORLD if world == "clean" else {}
+    n = (256 - model.tile) // model.stride + 1
+    tiles = bench_tiles(model, samples, 256, over)
+    true, ref, conf = (tiles[k].reshape(samples, n, n) for k in ("true", "refined", "confidence"))
+    ev = EvalConfig(samples=samples, seed=BENCH_SEED, height=256, width=256)
+    ds = DefocusPairDataset(size=256, camera=model.camera, seed=BENCH_SEED, tile=model.tile, stride=model.stride,
+                            **{**ev.options, **over})
+    _, inner = interior_origins(256)
+    rows = []
+    for i in tqdm(range(samples), desc=f"psf model: planes ({world})", mininterval=10.0):
+        s = ds[i]
+        p = s["params"]
+        if p["layout"] != "plane" or not 0.3 <= float(true[i].median()) <= 1.0:
+            continue
+        lens = psf_model(p)
+        t0 = time.perf_counter()
+        fit = sweep_fit(model.camera, lens, SWEEP_SEED + i, frames_per_power)
+        row = {"index": i, "seconds": time.perf_counter() - t0, "lens": lens, "fit": fit,
+               "true_q": (1.0 / true[i][inner, inner].flatten().double()),
+               "model_q": (1.0 / ref[i][inner, inner].flatten().double()),
+               "model_conf": conf[i][inner, inner].flatten().double()}
+        for name, stage in _stages(model, scales, fit, lens).items():
+            r = stage(s["image_f1"][None].float(), s["image_f2"][None].float(), ref[i][None, None],
+                      conf[i][None, None], black_level=black_levels([p])[0])
+            row[f"{name}_q"] = 1.0 / r.depth[0, 0, inner, inner].flatten().double()
+            row[f"{name}_conf"] = r.confidence[0, 0, inner, inner].flatten().double()
+            if name == "profiled":
+                row["profiled_psf"] = r.hypotheses[0]
+        rows.append(row)
+    return rows
+
+
+def structure_rows(model: DFDModel, scales: LikelihoodScales, scenes: int, frames_per_power: int) -> list[dict]:
+    """Per 480x640 structure scene (the first ``scenes`` per layout): its tiles in the working
+    range away from occlusion edges, true, model and each stage's depth and confidence."""
+    near, far = model.camera.depth_range_m
+    out = []
+    for layout in STRUCTURE_LAYOUTS:
+        ds = textured_scenes(model.camera, model.tile, model.stride, layout, (480, 640), STRUCTURE_SEED)
+        for i in tqdm(range(scenes), desc=f"psf model: {layout}", mininterval=10.0):
+            b = ds.batch([i])
+            i1, i2 = b["image_f1"].float(), b["image_f2"].float()
+            with torch.no_grad():
+                depth, conf = model.analyse(i1, i2).depth_map
+            lens = psf_model(b["params"][0])
+            fit = sweep_fit(model.camera, lens, SWEEP_SEED + 100_000 + 1000 * STRUCTURE_LAYOUTS.index(layout) + i,
+                            frames_per_power)
+            true = b["tile_depth"][0, 0].double()
+            keep = (true >= near) & (true <= far) & ~edge_tiles(b["depth"][0, 0], model.tile, model.stride)
+            row = {"layout": layout, "scene": i, "true": true[keep], "model": depth[0, 0][keep].double(),
+                   "model_conf": conf[0, 0][keep].double()}
+            for name, stage in _stages(model, scales, fit, lens).items():
+                r = stage(i1, i2, depth, conf, black_level=black_levels(b["params"])[0])
+                row[name] = r.depth[0, 0][keep].double()
+                row[f"{name}_conf"] = r.confidence[0, 0][keep].double()
+            out.append(row)
+    return out
+
+
+def _plain(value: object) -> object:
+    """A row's value as tensors, numbers and dicts only (a file ``torch.load(weights_only=True)`` reads)."""
+    if isinstance(value, PsfModelFit):
+        return value.summary()
+    if isinstance(value, PsfHypothesis):
+        return value.to_dict()
+    if isinstance(value, PSFModel):
+        return dataclasses.asdict(value)
+    return value
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.2f} %"
+
+
+def plane_table(rows: list[dict]) -> tuple[list[list[object]], list[str]]:
+    med = statistics.median
+    errors = {k: [(r["true_q"] / r[f"{k}_q"] - 1.0).tolist() for r in rows] for k in ("model", *STAGES)}
+    table = [[k, _pct(med(abs(x) for pl in v for x in pl)), _pct(med(abs(med(pl)) for pl in v))]
+             for k, v in errors.items()]
+    lines = []
+    for a, b in (("calibrated", "profiled"), ("calibrated", "model"), ("told", "calibrated")):
+        mt, lo, hi = paired_bootstrap(errors[a], errors[b])
+        mp, plo, phi = paired_bootstrap([[med(pl)] for pl in errors[a]], [[med(pl)] for pl in errors[b]])
+        lines.append(f"- {a} - {b}: per tile {100 * mt:+.2f} points (95 %: {100 * lo:+.2f} .. {100 * hi:+.2f}), "
+                     f"per plane {100 * mp:+.2f} ({100 * plo:+.2f} .. {100 * phi:+.2f})")
+    return table, lines
+
+
+def calibration_table(rows: list[dict]) -> list[list[object]]:
+    """The calibration's and the profiled stage's PSF error, quartiles over the lenses."""
+    def q(values: list[float]) -> str:
+        a = np.percentile(values, [25, 50, 75])
+        return f"{a[1]:.3f} ({a[0]:.3f} .. {a[2]:.3f})"
+    cal = [kernel_error(r["fit"].hypothesis, r["lens"]) for r in rows]
+    prof = [kernel_error(r["profiled_psf"], r["lens"]) for r in rows]
+    ast = [abs(r["fit"].hypothesis.astigmatism - r["lens"].astigmatism) for r in rows]
+    sph = [abs(r["fit"].hypothesis.spherical - r["lens"].spherical) for r in rows]
+    sec = [r["seconds"] for r in rows]
+    return [["sweep's PSF (calibrated)", q(cal), q(ast), q(sph), f"{statistics.median(sec):.1f} s"],
+            ["the profiled stage's choice per image", q(prof), "-", "-", "-"]]
+
+
+def structure_table(rows: list[dict]) -> list[list[object]]:
+    table = []
+    for layout in STRUCTURE_LAYOUTS:
+        sel = [r for r in rows if r["layout"] == layout]
+        if not sel:
+            continue
+        true = torch.cat([r["true"] for r in sel])
+        cells = []
+        for k in ("model", *STAGES):
+            est, conf = torch.cat([r[k] for r in sel]), torch.cat([r[f"{k}_conf"] for r in sel])
+            e = (est / true - 1).abs()
+            c = conf >= 0.5
+            cells.append(f"{_pct(float(e.median()))}; {100 * float(c.double().mean()):.0f} % at >= 0.5"
+                         + (f", {_pct(float(e[c].median()))} there" if bool(c.any()) else ""))
+        table.append([layout, len(sel), int(true.numel()), *cells])
+    return table
+
+
+def confidence_table(rows: list[dict], confidence_scale: float) -> list[list[object]]:
+    scene = torch.cat([torch.full((r["true_q"].numel(),), r["index"]) for r in rows])
+    true = torch.cat([r["true_q"] for r in rows])
+    out = []
+    for k in ("model", *STAGES):
+        q, conf = torch.cat([r[f"{k}_q"] for r in rows]), torch.cat([r[f"{k}_conf"] for r in rows])
+        out.append([k, int(q.numel())] + decile_summary(conf, relative_inverse_depth_error(1.0 / q, 1.0 / true),
+                                                        scene, confidence_scale))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--samples", type=int, default=256, help="the refinement benchmark's first N samples")
+    p.add_argument("--world", default="full", help="clean or full (the benchmark's whole world)")
+    p.add_argument("--structure", type=int, default=16, help="structure scenes per layout (0: none)")
+    p.add_argument("--frames-per-power", type=int, default=2, help="sweep frames averaged at each power")
+    p.add_argument("--model", default=str(ROOT / "models" / "reference"))
+    p.add_argument("--scales", default="", help="the stages' sigma factors (default: MODEL.likelihood.json)")
+    p.add_argument("--no-write", action="store_true", help="print only; leave docs/ alone")
+    p.add_argument("--rows", default="", help="also save every plane's and scene's figures (torch.save)")
+    args = p.parse_args(argv)
+    if args.samples < 1 or args.structure < 0 or args.frames_per_power < 1:
+        p.error("need --samples >= 1, --structure >= 0 and --frames-per-power >= 1")
+    world = comma_choices(p, args.world, ("clean", "full"), "--world")
+    if len(world) != 1:
+        p.error("--world takes one world")
+    torch.set_num_threads(2)
+    model = DFDModel.load(args.model)
+    scales = LikelihoodScales.load(args.scales or f"{args.model}.likelihood.json")
+    t0 = time.perf_counter()
+    rows = plane_rows(model, scales, args.samples, world[0], args.frames_per_power)
+    srows = structure_rows(model, scales, args.structure, args.frames_per_power) if args.structure else []
+    wall = time.perf_counter() - t0
+    if args.rows:
+        torch.save({"planes": [{k: _plain(v) for k, v in r.items()} for r in rows], "structure": srows}, args.rows)
+    planes, lines = plane_table(rows)
+    body = "\n".join([
+        f"Machine: {machine()}; the refinement benchmark's first {args.samples} samples (seed {BENCH_SEED}, 256 px, "
+        f"world `{world[0]}`), {len(rows)} planes in 0.3-1.0 m, their 25 interior tiles; wall time {wall:.0f} s. Each "
+        f"lens calibrated from a sweep of {SWEEP_POWERS} powers over +-{SWEEP_HALF_SPAN_PX:.0f} px of blur, "
+        f"{args.frames_per_power} frame(s) averaged per power, a band-limited chart at {SWEEP_DISTANCE_M} m "
+        f"({SWEEP_SIZE[0]}x{SWEEP_SIZE[1]}, 12-bit, noise on; {SWEEP_REGIONS} regions of 128 px). The stages' scales: "
+        f"`{args.scales or args.model + '.likelihood.json'}`.",
+        "",
+        "The PSF's error over the lenses (median, quartiles): the kernels' largest relative L2 distance at "
+        f"{', '.join(f'{s:+.0f}' for s in KERNEL_SIGMAS)} px of blur, both without diffraction (which cancels "
+        "from the cross residual); the astigmatism's and the spherical weight's absolute error:",
+        "",
+        markdown_table(["PSF", "kernel error", "astigmatism error", "spherical error", "calibration time"],
+                       calibration_table(rows)),
+        "",
+        "Median error on the planes' interior tiles, per tile / per plane:",
+        "",
+        markdown_table(["estimator", "per tile", "per plane"], planes),
+        "",
+        "Paired bootstrap over planes (1000 resamples, seed 0):",
+        "",
+        *lines,
+        "",
+        "Confidence per decile on the planes (observed / predicted median error within 20 %, section "
+        "`uncertainty`'s deciles, 100 resamples of the planes):",
+        "",
+        markdown_table(["confidence of", "tiles", "deciles within 20 %", "outside by > 2 s.e.", "ratio range",
+                        "worst ratio"], confidence_table(rows, model.confidence_scale)),
+        *(["", f"The structure benchmark's first {args.structure} scenes per layout (480x640, seed {STRUCTURE_SEED}, "
+               "the whole world; tiles in the working range away from occlusion edges), each scene's lens calibrated "
+               "as above. Each cell: median error; share at confidence >= 0.5, median error there.", "",
+           markdown_table(["layout", "scenes", "tiles", "model", *STAGES], structure_table(srows))] if srows else []),
+    ])
+    print(body)
+    if not args.no_write:
+        cmd = (f".venv/bin/python -m benchmarks.bench_psf_model --samples {args.samples} --world {world[0]} "
+               f"--structure {args.structure} --frames-per-power {args.frames_per_power}"
+               + (f" --scales {args.scales}" if args.scales else ""))
+        update_section("psf_model", "The lens's PSF measured from a focus sweep, the likelihood stage told it "
+                                    "(issue 19)", body, cmd)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
