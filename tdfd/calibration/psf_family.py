@@ -62,7 +62,8 @@ from ..errors import InputError
 from .fit import group_scenes
 
 __all__ = ["PsfFamilyFit", "psf_family_from_frames", "psf_family_from_captures", "MIN_FAMILY_RATIO",
-           "MIN_FAMILY_FRAMES", "MAX_FAMILY_FRAMES", "MAX_FAMILY_REGIONS", "central_regions"]
+           "MIN_FAMILY_FRAMES", "MAX_FAMILY_FRAMES", "MAX_FAMILY_REGIONS", "central_regions",
+           "capture_scenes"]
 
 log = logging.getLogger(__name__)
 
@@ -234,6 +235,19 @@ def psf_family_from_frames(scenes: Sequence[Sequence[tuple[np.ndarray, float]]],
                         {f: float(np.median(v)) for f, v in scale_list.items()})
 
 
+def capture_scenes(frames: Sequence[Any], region: int) -> tuple[list[list[tuple[np.ndarray, float]]], int]:
+    """Capture-folder frames grouped into scenes as the calibration does
+    (:func:`tdfd.calibration.fit.group_scenes`: a scene's sweep and pair frames together), each a
+    list of ``(image, power_dpt)``, and ``region`` shrunk to the frames' shorter side (a multiple
+    of 32 px) on small frames."""
+    scenes = []
+    for s in group_scenes(frames):
+        members = list(s.sweep) + [f for pair in s.pairs for f in pair]
+        scenes.append([(f.image, f.power_dpt) for f in members])
+    smallest = min((min(im.shape) for sc in scenes for im, _ in sc), default=region)
+    return scenes, min(region, smallest // 32 * 32)
+
+
 def psf_family_from_captures(frames: Sequence[Any], camera_file: Any, region: int = 128,
                              min_ratio: float = MIN_FAMILY_RATIO, fixed_gaussian_scale: bool = True) -> PsfFamilyFit:
     """:func:`psf_family_from_frames` on capture-folder frames (:class:`~tdfd.capture.folder.CaptureFrame`),
@@ -244,12 +258,7 @@ def psf_family_from_captures(frames: Sequence[Any], camera_file: Any, region: in
     Raises:
         InputError: as :func:`psf_family_from_frames` (no scene with three powers, ...).
     """
-    scenes = []
-    for s in group_scenes(frames):
-        members = list(s.sweep) + [f for pair in s.pairs for f in pair]
-        scenes.append([(f.image, f.power_dpt) for f in members])
-    smallest = min((min(im.shape) for sc in scenes for im, _ in sc), default=region)
-    region = min(region, smallest // 32 * 32)
+    scenes, region = capture_scenes(frames, region)
     return psf_family_from_frames(scenes, camera_file.camera, region=region,
                                   magnification_per_dpt=camera_file.magnification_per_dpt, min_ratio=min_ratio,
                                   fixed_gaussian_scale=fixed_gaussian_scale)

@@ -70,9 +70,8 @@ from ..camera import Camera
 from ..dfd.cross_residual import band_weight, kernel_spectra, tukey_window
 from ..dfd.psf_hypotheses import PsfHypothesis
 from ..errors import InputError
-from .fit import group_scenes
 from .nelder_mead import nelder_mead
-from .psf_family import MIN_FAMILY_FRAMES, central_regions
+from .psf_family import MIN_FAMILY_FRAMES, capture_scenes, central_regions
 
 __all__ = ["PsfModelFit", "psf_model_from_frames", "psf_model_from_captures", "MAX_MODEL_FRAMES", "MAX_MODEL_REGIONS",
            "MAX_ABERRATION"]
@@ -332,11 +331,6 @@ def psf_model_from_captures(frames: Sequence[Any], camera_file: Any, region: int
     Raises:
         InputError: as :func:`psf_model_from_frames`.
     """
-    scenes = []
-    for s in group_scenes(frames):
-        members = list(s.sweep) + [f for pair in s.pairs for f in pair]
-        scenes.append([(f.image, f.power_dpt) for f in members])
-    smallest = min((min(im.shape) for sc in scenes for im, _ in sc), default=region)
-    region = min(region, smallest // 32 * 32)
+    scenes, region = capture_scenes(frames, region)
     return psf_model_from_frames(scenes, camera_file.camera, region=region,
                                  magnification_per_dpt=camera_file.magnification_per_dpt, **kwargs)
