@@ -290,3 +290,26 @@ def test_likelihood_stage_refines_the_map_and_keeps_problems(plane_pairs, shippe
     rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--likelihood-stage", scales,
                       "--black-level", "5000")
     _one_line_error(rc, err, "black level")
+
+
+def test_likelihood_stage_takes_the_measured_psf_model(plane_pairs, shipped_onnx, tmp_path, capsys):
+    """``--psf-model CAM.json``: the stage fits with the camera file's measured PSF (here the
+    Gaussian the planes were rendered with) and reads the plane; an unusable file is a one-line error."""
+    from tdfd import Camera
+    from tdfd.camera_file import CameraFile
+
+    scales = ROOT / "models" / "reference.likelihood.json"
+    f1, f2, truth = plane_pairs[0]
+    a, b = _write_pair(tmp_path, f1, f2, "measured")
+    model = {"shape": "gaussian", "diffraction_px": 0.0, "astigmatism": 0.0, "astigmatism_angle_rad": 0.0,
+             "spherical": 0.0, "sigma_scale": 1.0}
+    cam = CameraFile(Camera.preset("reference"), psf_model=model).write(tmp_path / "cam.json")
+    out = tmp_path / "measured.npy"
+    rc, stdout, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--threshold", "0",
+                           "--likelihood-stage", scales, "--psf-model", cam, "-o", out)
+    assert rc == 0, err
+    assert abs(float(np.median(np.load(out)[1:-1, 1:-1])) - truth) / truth < 0.03
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({**Camera.preset("reference").to_dict(), "psf_model": {**model, "spherical": 0.9}}))
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--likelihood-stage", scales, "--psf-model", bad)
+    _one_line_error(rc, err, "psf_model")
