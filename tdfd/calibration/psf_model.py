@@ -67,7 +67,7 @@ from ..autofocus.cross_blur import evenly_thinned
 from ..autofocus.evidence import sigma_px_per_dpt
 from ..breathing import magnify
 from ..camera import Camera
-from ..dfd.cross_residual import band_weight, kernel_spectra, tukey_window
+from ..dfd.cross_residual import band_weight, kernel_spectra, taper_lag_weight, tapered_power, tukey_window
 from ..dfd.psf_hypotheses import PsfHypothesis
 from ..errors import InputError
 from .nelder_mead import nelder_mead
@@ -168,11 +168,7 @@ class _Region:
         taper = tukey_window(mh, mw)
         self.taper = taper / float((taper ** 2).mean().sqrt())
         self.weight = band_weight(mh, mw, BAND)
-        # the taper's autocorrelation on the residual's lags, once (tapered_periodograms' own, per call)
-        big = torch.fft.fft2(self.taper, s=(2 * mh, 2 * mw))
-        acw = torch.fft.ifft2(big.abs() ** 2).real / (mh * mw)
-        ly, lx = (torch.fft.fftfreq(n_, 1.0 / n_).long() % (2 * n_) for n_ in (mh, mw))
-        self.lag_weight = acw[ly][:, lx]
+        self.lag_weight = taper_lag_weight(self.taper)  # once per region, not per evaluation
         n = len(frames)
         self.pairs = torch.tensor([(i, j) for i in range(n) for j in range(i + 1, n)], dtype=torch.long)
 
@@ -186,8 +182,7 @@ class _Region:
         y0, y1, x0, x1 = self.crop
         mh, mw = y1 - y0, x1 - x0
         big_r = torch.fft.rfft2(r[:, y0:y1, x0:x1] * self.taper)
-        # each kernel's |K|^2 through the taper: its autocovariance times the taper's autocorrelation
-        a = torch.fft.rfft2(torch.fft.irfft2(kernel_spectra(k, (mh, mw)).abs() ** 2, s=(mh, mw)) * self.lag_weight).real
+        a = tapered_power(k, self.lag_weight)  # each kernel's |K|^2 through the taper
         terms = big_r.abs() ** 2 / (mh * mw) / (a[j] + a[i]).clamp_min(1e-300)
         return float(((terms * self.weight).sum((-1, -2)) / self.weight.sum()).sum())
 

@@ -40,9 +40,9 @@ import torch
 
 from ..errors import InputError, ShapeError
 
-__all__ = ["TAPER_FRACTION", "tukey_window", "kernel_spectra", "tapered_periodograms", "band_weight", "valid_residual",
-           "cross_residual_nll", "tile_cross_residual_nll", "parabolic_minima", "argmin_parabolic", "independent_bins",
-           "curvature_sigma"]
+__all__ = ["TAPER_FRACTION", "tukey_window", "kernel_spectra", "taper_lag_weight", "tapered_power",
+           "tapered_periodograms", "band_weight", "valid_residual", "cross_residual_nll", "tile_cross_residual_nll",
+           "parabolic_minima", "argmin_parabolic", "independent_bins", "curvature_sigma"]
 
 TAPER_FRACTION = 0.1
 
@@ -113,22 +113,35 @@ def valid_residual(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor, k2: tor
     return r[:, half: h - half, half: w - half]
 
 
+def taper_lag_weight(taper: torch.Tensor) -> torch.Tensor:
+    """The taper's autocorrelation (1 at lag 0) on the ``(mh, mw)`` lags of a residual of the
+    taper's shape: what a stationary residual's autocovariance is multiplied by through the taper."""
+    mh, mw = taper.shape
+    big = torch.fft.fft2(taper, s=(2 * mh, 2 * mw))
+    acw = torch.fft.ifft2(big.abs() ** 2).real / (mh * mw)
+    ly, lx = (torch.fft.fftfreq(m, 1.0 / m).long() % (2 * m) for m in (mh, mw))
+    return acw[ly][:, lx]
+
+
+def tapered_power(k: torch.Tensor, lag_weight: torch.Tensor) -> torch.Tensor:
+    """``|K|^2`` of ``(Q, n, n)`` kernels through the taper whose :func:`taper_lag_weight` is
+    ``lag_weight``: the expected periodogram of a unit white noise blurred by each kernel, tapered."""
+    mh, mw = lag_weight.shape
+    power = kernel_spectra(k.to(torch.float64), (mh, mw)).abs() ** 2
+    cov = torch.fft.irfft2(power, s=(mh, mw))  # the residual's autocovariance: a kernel's support
+    return torch.fft.rfft2(cov * lag_weight).real
+
+
 def tapered_periodograms(k1: torch.Tensor, k2: torch.Tensor, taper: torch.Tensor, model_taper: bool
                           ) -> tuple[torch.Tensor, torch.Tensor]:
     """The expected periodograms of the tapered residual of unit noise in frame 1 (``|K2|^2``
     through the taper) and in frame 2 (``|K1|^2`` through it): ``P~ = nu1 * A + nu2 * B``."""
-    mh, mw = taper.shape
-    out = []
-    for k in (k2, k1):
-        power = kernel_spectra(k.to(torch.float64), (mh, mw)).abs() ** 2
-        if model_taper:
-            big = torch.fft.fft2(taper, s=(2 * mh, 2 * mw))
-            acw = torch.fft.ifft2(big.abs() ** 2).real / (mh * mw)  # the taper's autocorrelation, 1 at lag 0
-            ly, lx = (torch.fft.fftfreq(m, 1.0 / m).long() % (2 * m) for m in (mh, mw))
-            cov = torch.fft.irfft2(power, s=(mh, mw))  # the residual's autocovariance: a kernel's support
-            power = torch.fft.rfft2(cov * acw[ly][:, lx]).real
-        out.append(power)
-    return out[0], out[1]
+    if model_taper:
+        lag_weight = taper_lag_weight(taper)
+        return tapered_power(k2, lag_weight), tapered_power(k1, lag_weight)
+    shape = tuple(taper.shape)
+    return (kernel_spectra(k2.to(torch.float64), shape).abs() ** 2,
+            kernel_spectra(k1.to(torch.float64), shape).abs() ** 2)
 
 
 def band_weight(mh: int, mw: int, band: float) -> torch.Tensor:

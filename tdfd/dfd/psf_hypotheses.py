@@ -151,7 +151,7 @@ class PsfHypothesis:
         pad = self.diffraction_pad
         if size % 2 == 0 or size - 2 * pad < 1:
             raise ShapeError(f"kernel size must be odd and above {2 * pad}, got {size}")
-        sigma = sigma.reshape(-1) * self.sigma_scale if self.sigma_scale != 1.0 else sigma.reshape(-1)
+        sigma = sigma.reshape(-1) * self.sigma_scale
         if self.aberrated:
             return self.model().kernels(sigma, size)
         k = psf_kernel(sigma, self.shape, size - 2 * pad)
