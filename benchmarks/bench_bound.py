@@ -76,6 +76,7 @@ from benchmarks.report import ROOT, markdown_table, update_section
 from data_synth import DefocusPairDataset
 from data_synth.params import SynthConfig
 from data_synth.psf import PSFModel, diffraction_sigma_px
+from data_synth.psf import sample_psf_model as psf_model  # re-exported: the benchmarks' name
 from tdfd import Camera
 from tdfd.dfd import FourierRatioDFD
 from tdfd.errors import InputError
@@ -107,14 +108,6 @@ VARIANTS = {"tile_known": "per tile, PSF known", "tile_shared": "per tile, PSF s
             "tile_band": "per tile, PSF shared, the estimator's rings only", "plane_known": "per plane, PSF known",
             "plane_unknown": "per plane, PSF unknown"}
 BINS = ((0.30, 0.40), (0.40, 0.50), (0.50, 0.60), (0.60, 0.70), (0.70, 0.80), (0.80, 0.90), (0.90, 1.00))
-
-
-def psf_model(params: dict) -> PSFModel:
-    """The :class:`~data_synth.psf.PSFModel` a ``data_synth`` sample was rendered with."""
-    shape = params["psf_shape"]
-    shape_v: str | float = float(params["psf_beta"]) if shape == "beta" else str(shape)
-    return PSFModel(shape_v, float(params["diffraction_sigma_px"]), float(params["astigmatism"]),
-                    float(params["astigmatism_angle"]), float(params["spherical"]))
 
 
 def otf(model: PSFModel, sigma: float, size: int = TILE, supersample: int | None = None) -> torch.Tensor:

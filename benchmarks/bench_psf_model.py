@@ -3,22 +3,26 @@ r"""The lens's whole PSF measured from a focus sweep, and the likelihood stage t
 Run from the repository root::
 
     .venv/bin/python -m benchmarks.bench_psf_model [--samples 256] [--world full] [--structure 16]
-        [--frames-per-power 2] [--no-write]
+        [--frames-per-power 2] [--scales S.json] [--calibrated-scales S.json] [--no-write]
 
 Every sample of the benchmarks has its own lens (``data_synth``'s draw: a shape between Gaussian
 and disk, diffraction, astigmatism, spherical aberration). Here each is calibrated as a user
-calibrates theirs: a focus sweep of a band-limited chart at 0.5 m through that lens
-(:class:`tdfd.capture.sim.SimulatedRig`: 256x256, 12-bit, shot and read noise), 7 powers over
-+-3 px of blur, ``--frames-per-power`` frames at each averaged, fitted by
-:func:`tdfd.calibration.psf_model.psf_model_from_frames` on its 2 central 128-px regions. Then
-three likelihood stages (:mod:`tdfd.dfd.likelihood_stage`) run on the sample's pair after the
-shipped model, with the same scales file (``models/reference.likelihood.json``) and the same
-model map:
+calibrates theirs (:func:`training.calibrated_lens.sweep_fit`): a focus sweep of a band-limited
+chart at 0.5 m through that lens (:class:`tdfd.capture.sim.SimulatedRig`: 256x256, 12-bit, shot
+and read noise), 7 powers over +-3 px of blur, ``--frames-per-power`` frames at each averaged,
+fitted by :func:`tdfd.calibration.psf_model.psf_model_from_frames` on its 2 central 128-px
+regions. Then four likelihood stages (:mod:`tdfd.dfd.likelihood_stage`) run on the sample's pair
+after the shipped model, on the same model map:
 
 - ``profiled``: the stage as shipped, the PSF profiled over every shape, with and without the
-  working f-number's diffraction;
-- ``calibrated``: the sweep's PSF as its one hypothesis (``tdfd depth --psf-model CAM.json``);
-- ``told``: the sample's true PSF as its one hypothesis (the oracle a calibration aims at).
+  working f-number's diffraction, its scales ``models/reference.likelihood.json``;
+- ``calibrated_shipped_scales``: the sweep's PSF as its one hypothesis, with the same scales
+  (what ``tdfd depth --psf-model`` did before scales were fitted for it);
+- ``calibrated``: the sweep's PSF, with the scales fitted with every training scene's lens
+  calibrated the same way (``models/reference.likelihood-calibrated.json``,
+  ``training.fit_likelihood_stage --calibrated-psf``: ``tdfd depth --psf-model CAM.json``);
+- ``told``: the sample's true PSF as its one hypothesis, with those scales (the oracle a
+  calibration aims at).
 
 Reports the calibration's error (the kernels at +-1, +-2, +-3 px of blur against the true
 lens's without its diffraction, which the sweep cannot see: relative L2; astigmatism and
@@ -35,6 +39,7 @@ import dataclasses
 import statistics
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -50,43 +55,27 @@ from benchmarks.depth_edges import edge_tiles
 from benchmarks.report import ROOT, comma_choices, machine, markdown_table, update_section
 from benchmarks.stage_uncertainty import decile_summary, relative_inverse_depth_error
 from data_synth import DefocusPairDataset
-from tdfd.autofocus.evidence import sigma_px_per_dpt
-from tdfd.calibration.psf_model import PsfModelFit, psf_model_from_frames
-from tdfd.camera import Camera
-from tdfd.camera_file import CameraFile
-from tdfd.capture.sim import SimulatedRig
+from tdfd.calibration.psf_model import PsfModelFit
 from tdfd.dfd.inverse_variance import LikelihoodScales
 from tdfd.dfd.likelihood_stage import LikelihoodStage
 from tdfd.dfd.psf_hypotheses import PsfHypothesis
 from tdfd.model import DFDModel
 from tdfd.optics.aberrated_psf import PSFModel
+from training.calibrated_lens import (SWEEP_DISTANCE_M, SWEEP_HALF_SPAN_PX, SWEEP_POWERS, SWEEP_REGIONS, SWEEP_SIZE,
+                                      sweep_fit)
 from training.config import EvalConfig
 from training.data import STRUCTURE_LAYOUTS, textured_scenes
 from training.fit_likelihood_stage import black_levels
 
-__all__ = ["sweep_fit", "kernel_error", "STAGES", "main"]
+__all__ = ["kernel_error", "STAGES", "main"]
+
+#: the sweeps' seeds (``training.calibrated_lens.sweep_fit``): planes at +i, structure scenes above
+SWEEP_SEED = 7_000_000
 
 #: the stages compared, in the tables' order
-STAGES = ("profiled", "calibrated", "told")
-#: the sweep: powers, half-span in px of blur, chart distance (m), frame size, regions, seed offset
-SWEEP_POWERS = 7
-SWEEP_HALF_SPAN_PX = 3.0
-SWEEP_DISTANCE_M = 0.5
-SWEEP_SIZE = (256, 256)
-SWEEP_REGIONS = 2
-SWEEP_SEED = 7_000_000
+STAGES = ("profiled", "calibrated_shipped_scales", "calibrated", "told")
 #: the blurs (px) at which the kernels are compared
 KERNEL_SIGMAS = (-3.0, -2.0, -1.0, 1.0, 2.0, 3.0)
-
-
-def sweep_fit(camera: Camera, lens: PSFModel, seed: int, frames_per_power: int) -> PsfModelFit:
-    """The PSF a focus sweep of a band-limited chart through ``lens`` gives (module docstring)."""
-    rig = SimulatedRig(CameraFile(camera), SWEEP_DISTANCE_M, size=SWEEP_SIZE, seed=seed, texture="bandlimited",
-                       psf=lens)
-    centre, half = rig.in_focus_command_dpt(), SWEEP_HALF_SPAN_PX / sigma_px_per_dpt(camera)
-    frames = [(rig.capture(p)[0].astype(np.float64), float(p))
-              for p in np.linspace(centre - half, centre + half, SWEEP_POWERS) for _ in range(frames_per_power)]
-    return psf_model_from_frames([frames], camera, region=128, max_regions=SWEEP_REGIONS, max_evaluations=250)
 
 
 def kernel_error(fitted: PsfHypothesis, lens: PSFModel) -> float:
@@ -107,13 +96,18 @@ def _hypothesis(lens: PSFModel) -> PsfHypothesis:
                          lens.spherical)
 
 
-def _stages(model: DFDModel, scales: LikelihoodScales, fit: PsfModelFit, lens: PSFModel) -> dict[str, LikelihoodStage]:
-    return {"profiled": LikelihoodStage.for_model(model, scales=scales),
-            "calibrated": LikelihoodStage.for_model(model, scales=scales, hypotheses=(fit.hypothesis,)),
-            "told": LikelihoodStage.for_model(model, scales=scales, hypotheses=(_hypothesis(lens),))}
+def _stages(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], fit: PsfModelFit, lens: PSFModel
+            ) -> dict[str, LikelihoodStage]:
+    """:data:`STAGES` for one lens; ``scales``: the profiled stage's, the measured PSF's."""
+    shipped, measured = scales
+    return {"profiled": LikelihoodStage.for_model(model, scales=shipped),
+            "calibrated_shipped_scales": LikelihoodStage.for_model(model, scales=shipped,
+                                                                   hypotheses=(fit.hypothesis,)),
+            "calibrated": LikelihoodStage.for_model(model, scales=measured, hypotheses=(fit.hypothesis,)),
+            "told": LikelihoodStage.for_model(model, scales=measured, hypotheses=(_hypothesis(lens),))}
 
 
-def plane_rows(model: DFDModel, scales: LikelihoodScales, samples: int, world: str, frames_per_power: int
+def plane_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], samples: int, world: str, frames_per_power: int
                ) -> list[dict]:
     """Per plane (0.3-1.0 m) of the refinement benchmark's first ``samples``: its interior tiles'
     true, model and stages' inverse depths and confidences, and its lens's calibration."""
@@ -149,7 +143,7 @@ def plane_rows(model: DFDModel, scales: LikelihoodScales, samples: int, world: s
     return rows
 
 
-def structure_rows(model: DFDModel, scales: LikelihoodScales, scenes: int, frames_per_power: int) -> list[dict]:
+def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], scenes: int, frames_per_power: int) -> list[dict]:
     """Per 480x640 structure scene (the first ``scenes`` per layout): its tiles in the working
     range away from occlusion edges, true, model and each stage's depth and confidence."""
     near, far = model.camera.depth_range_m
@@ -187,6 +181,12 @@ def _plain(value: object) -> object:
     return value
 
 
+def _shown(path: str) -> str:
+    """``path`` relative to the repository where it lies in it (what the docs print)."""
+    p = Path(path).resolve()
+    return str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else path
+
+
 def _pct(x: float) -> str:
     return f"{100 * x:.2f} %"
 
@@ -197,7 +197,8 @@ def plane_table(rows: list[dict]) -> tuple[list[list[object]], list[str]]:
     table = [[k, _pct(med(abs(x) for pl in v for x in pl)), _pct(med(abs(med(pl)) for pl in v))]
              for k, v in errors.items()]
     lines = []
-    for a, b in (("calibrated", "profiled"), ("calibrated", "model"), ("told", "calibrated")):
+    for a, b in (("calibrated", "profiled"), ("calibrated", "model"), ("calibrated", "calibrated_shipped_scales"),
+                 ("told", "calibrated")):
         mt, lo, hi = paired_bootstrap(errors[a], errors[b])
         mp, plo, phi = paired_bootstrap([[med(pl)] for pl in errors[a]], [[med(pl)] for pl in errors[b]])
         lines.append(f"- {a} - {b}: per tile {100 * mt:+.2f} points (95 %: {100 * lo:+.2f} .. {100 * hi:+.2f}), "
@@ -255,7 +256,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--structure", type=int, default=16, help="structure scenes per layout (0: none)")
     p.add_argument("--frames-per-power", type=int, default=2, help="sweep frames averaged at each power")
     p.add_argument("--model", default=str(ROOT / "models" / "reference"))
-    p.add_argument("--scales", default="", help="the stages' sigma factors (default: MODEL.likelihood.json)")
+    p.add_argument("--scales", default="", help="the profiled stage's sigma factors (default: MODEL.likelihood.json)")
+    p.add_argument("--calibrated-scales", default="",
+                   help="the sigma factors fitted with each lens calibrated, for the stages told a PSF (default: "
+                        "MODEL.likelihood-calibrated.json)")
     p.add_argument("--no-write", action="store_true", help="print only; leave docs/ alone")
     p.add_argument("--rows", default="", help="also save every plane's and scene's figures (torch.save)")
     args = p.parse_args(argv)
@@ -266,7 +270,10 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--world takes one world")
     torch.set_num_threads(2)
     model = DFDModel.load(args.model)
-    scales = LikelihoodScales.load(args.scales or f"{args.model}.likelihood.json")
+    scales_paths = (args.scales or f"{args.model}.likelihood.json",
+                    args.calibrated_scales or f"{args.model}.likelihood-calibrated.json")
+    scales = (LikelihoodScales.load(scales_paths[0]), LikelihoodScales.load(scales_paths[1]))
+    shown = [_shown(x) for x in scales_paths]
     t0 = time.perf_counter()
     rows = plane_rows(model, scales, args.samples, world[0], args.frames_per_power)
     srows = structure_rows(model, scales, args.structure, args.frames_per_power) if args.structure else []
@@ -280,7 +287,9 @@ def main(argv: list[str] | None = None) -> int:
         f"lens calibrated from a sweep of {SWEEP_POWERS} powers over +-{SWEEP_HALF_SPAN_PX:.0f} px of blur, "
         f"{args.frames_per_power} frame(s) averaged per power, a band-limited chart at {SWEEP_DISTANCE_M} m "
         f"({SWEEP_SIZE[0]}x{SWEEP_SIZE[1]}, 12-bit, noise on; {SWEEP_REGIONS} regions of 128 px). The stages' scales: "
-        f"`{args.scales or args.model + '.likelihood.json'}`.",
+        f"`{shown[0]}` (`profiled`, `calibrated_shipped_scales`: the shipped stage's, fitted with the PSF "
+        f"profiled), `{shown[1]}` (`calibrated`, `told`: fitted with each training scene's lens calibrated "
+        f"from its own sweep, `training.fit_likelihood_stage --calibrated-psf`).",
         "",
         "The PSF's error over the lenses (median, quartiles): the kernels' largest relative L2 distance at "
         f"{', '.join(f'{s:+.0f}' for s in KERNEL_SIGMAS)} px of blur, both without diffraction (which cancels "
@@ -311,7 +320,8 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_write:
         cmd = (f".venv/bin/python -m benchmarks.bench_psf_model --samples {args.samples} --world {world[0]} "
                f"--structure {args.structure} --frames-per-power {args.frames_per_power}"
-               + (f" --scales {args.scales}" if args.scales else ""))
+               + (f" --scales {args.scales}" if args.scales else "")
+               + (f" --calibrated-scales {args.calibrated_scales}" if args.calibrated_scales else ""))
         update_section("psf_model", "The lens's PSF measured from a focus sweep, the likelihood stage told it "
                                     "(issue 19)", body, cmd)
     return 0

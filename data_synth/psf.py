@@ -21,7 +21,15 @@ import torch
 from tdfd.optics.aberrated_psf import PSFModel
 from tdfd.optics.psf import diffraction_sigma_px
 
-__all__ = ["PSFModel", "diffraction_sigma_px", "batch_kernel_fn"]
+__all__ = ["PSFModel", "diffraction_sigma_px", "sample_psf_model", "batch_kernel_fn"]
+
+
+def sample_psf_model(params: dict) -> PSFModel:
+    """The :class:`PSFModel` a ``data_synth`` sample was rendered with, from its ``params``."""
+    shape = params["psf_shape"]
+    shape_v: str | float = float(params["psf_beta"]) if shape == "beta" else str(shape)
+    return PSFModel(shape_v, float(params["diffraction_sigma_px"]), float(params["astigmatism"]),
+                    float(params["astigmatism_angle"]), float(params["spherical"]))
 
 
 def batch_kernel_fn(models: Sequence[PSFModel]):

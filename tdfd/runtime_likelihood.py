@@ -46,6 +46,8 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
         black_level: the frames' black level as a fraction of full scale (``[0, 1)``).
         psf_model: the lens's PSF measured from a focus sweep (a camera file's ``psf_model``,
             ``tdfd calibrate --psf-model``): the stage's one hypothesis instead of the family's.
+            Scales fitted for the other case (:attr:`~tdfd.dfd.inverse_variance.LikelihoodScales.psf`)
+            are used with a warning.
 
     Raises:
         InputError: a file with focus breathing, a runtime for another camera, a bad black level.
@@ -65,7 +67,15 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
     if not isinstance(b0, (int, float)) or not b0 > 0:
         raise ModelError(f"{rt.path} has no positive confidence_scale in its {MODEL_KEY!r} metadata")
     hypotheses = None if psf_model is None else (PsfHypothesis.from_dict(psf_model),)
-    return LikelihoodStage(rt.camera, rt.tile, rt.stride, float(b0), scales=LikelihoodScales.load(scales_path),
+    scales = LikelihoodScales.load(scales_path)
+    told = "profiled" if psf_model is None else "measured"
+    if scales.psf != told:
+        log.warning("%s was fitted for the stage with the PSF %s, this one has it %s: the fusion's weights and "
+                    "confidences will be off (%s)", scales_path, scales.psf, told,
+                    "fit the scales with --calibrated-psf, or use the shipped models/reference.likelihood-calibrated"
+                    ".json" if told == "measured" else "use scales fitted without --calibrated-psf, e.g. "
+                    "models/reference.likelihood.json")
+    return LikelihoodStage(rt.camera, rt.tile, rt.stride, float(b0), scales=scales,
                            family=rt.psf_family, hypotheses=hypotheses, black_level=black_level)
 
 

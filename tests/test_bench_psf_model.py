@@ -25,11 +25,12 @@ def test_the_plane_table_scores_every_stage_against_the_truth():
     rows = []
     for i in range(4):
         row = {"index": i, "true_q": true, "model_q": true * 1.04}
-        for k, f in zip(STAGES, (1.02, 1.01, 1.0)):
+        for k, f in zip(STAGES, (1.02, 1.015, 1.01, 1.0)):
             row[f"{k}_q"] = true * f
         rows.append(row)
     table, lines = plane_table(rows)
     cells = {r[0]: r[1] for r in table}
     # depth / true depth - 1 = true_q / q - 1
     assert cells["model"] == f"{100 * abs(1 / 1.04 - 1):.2f} %" and cells["told"] == "0.00 %"
-    assert len(lines) == 3 and lines[0].startswith("- calibrated - profiled: per tile -0.9")
+    assert len(lines) == 4 and lines[0].startswith("- calibrated - profiled: per tile -0.9")
+    assert lines[2].startswith("- calibrated - calibrated_shipped_scales: per tile -0.4")

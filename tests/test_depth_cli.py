@@ -292,13 +292,17 @@ def test_likelihood_stage_refines_the_map_and_keeps_problems(plane_pairs, shippe
     _one_line_error(rc, err, "black level")
 
 
-def test_likelihood_stage_takes_the_measured_psf_model(plane_pairs, shipped_onnx, tmp_path, capsys):
+def test_likelihood_stage_takes_the_measured_psf_model(plane_pairs, shipped_onnx, tmp_path, capsys, caplog):
     """``--psf-model CAM.json``: the stage fits with the camera file's measured PSF (here the
-    Gaussian the planes were rendered with) and reads the plane; an unusable file is a one-line error."""
+    Gaussian the planes were rendered with) and reads the plane, with the scales fitted for a measured
+    PSF (the shipped ``reference.likelihood-calibrated.json``); scales fitted for the other case are
+    used with a warning that names the right ones; an unusable file is a one-line error."""
     from tdfd import Camera
     from tdfd.camera_file import CameraFile
 
-    scales = ROOT / "models" / "reference.likelihood.json"
+    scales = ROOT / "models" / "reference.likelihood-calibrated.json"
+    assert json.loads(scales.read_text())["psf"] == "measured"
+    profiled = ROOT / "models" / "reference.likelihood.json"
     f1, f2, truth = plane_pairs[0]
     a, b = _write_pair(tmp_path, f1, f2, "measured")
     model = {"shape": "gaussian", "diffraction_px": 0.0, "astigmatism": 0.0, "astigmatism_angle_rad": 0.0,
@@ -309,6 +313,16 @@ def test_likelihood_stage_takes_the_measured_psf_model(plane_pairs, shipped_onnx
                            "--likelihood-stage", scales, "--psf-model", cam, "-o", out)
     assert rc == 0, err
     assert abs(float(np.median(np.load(out)[1:-1, 1:-1])) - truth) / truth < 0.03
+    assert "fitted for the stage with the PSF" not in caplog.text
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--threshold", "0",
+                      "--likelihood-stage", profiled, "--psf-model", cam, "-o", tmp_path / "mismatch.npy")
+    assert rc == 0, err
+    assert "with the PSF profiled, this one has it measured" in caplog.text and "--calibrated-psf" in caplog.text
+    caplog.clear()
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--threshold", "0",
+                      "--likelihood-stage", scales, "-o", tmp_path / "other_way.npy")
+    assert rc == 0, err
+    assert "with the PSF measured, this one has it profiled" in caplog.text
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({**Camera.preset("reference").to_dict(), "psf_model": {**model, "spherical": 0.9}}))
     rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--likelihood-stage", scales, "--psf-model", bad)

@@ -56,7 +56,7 @@ def test_the_models_factor_is_that_of_its_errors_without_each_images_bias():
     assert 0.4 < debiased.model[0] < 0.8
 
 
-def test_the_fit_writes_a_scales_file_with_its_provenance(tmp_path):
+def test_the_fit_writes_a_scales_file_with_its_provenance(tmp_path, monkeypatch):
     import shutil
     from pathlib import Path
 
@@ -81,6 +81,29 @@ def test_the_fit_writes_a_scales_file_with_its_provenance(tmp_path):
     assert biased.fused_log_b is None  # two planes: too few tiles for a map, said in the log
     assert "--shared-bias --bias-radius 2 --out" in biased.provenance["command"]
     assert set(prov["median_abs_error"]) == {"fit", "model", "model_without_bias", "fused"}
+    assert scales.psf == "profiled" and prov["psf"] == "profiled over every shape"
+    # --calibrated-psf: each scene's stage told its lens as a focus sweep measures it
+    import training.fit_likelihood_stage as fls
+    from data_synth.psf import sample_psf_model
+    from training.calibrate_scale import calibration_scene_sets
+    from tdfd.model import DFDModel
+
+    calls, real = [], fls.sweep_fit
+
+    def spy(camera, lens, seed, frames_per_power):
+        calls.append((lens, seed, frames_per_power))
+        return real(camera, lens, seed, frames_per_power)
+
+    monkeypatch.setattr(fls, "sweep_fit", spy)
+    assert main(["--model", str(stem), "--planes", "1", "--scenes", "0", "--calibrated-psf", "1",
+                 "--out", str(tmp_path / "c.json")]) == 0
+    first = calibration_scene_sets(DFDModel.load(stem), 1, 0)[0][1].batch([0])["params"][0]
+    assert calls == [(sample_psf_model(first), fls.CALIBRATION_SWEEP_SEED, 1)]  # the scene's own lens
+    measured = LikelihoodScales.load(tmp_path / "c.json")
+    assert measured.psf == "measured" and "--calibrated-psf 1" in measured.provenance["command"]
+    assert "focus sweep (1 frame(s) per power" in measured.provenance["psf"]
+    with pytest.raises(SystemExit):
+        main(["--model", str(stem), "--planes", "1", "--calibrated-psf", "-1"])
 
 
 def _correlated_errors(images: int = 200, tiles: int = 40, seed: int = 5) -> dict[str, torch.Tensor]:

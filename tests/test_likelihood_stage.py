@@ -398,3 +398,19 @@ def test_the_fused_confidence_goes_through_the_map_only_where_the_fit_adds_to_th
     torch.testing.assert_close(c1[:2], 1.0 / (1.0 + (2.0 * b0_raw[:2] / b0) ** 2))
     # no fit: the model's own confidence, map or not (sigma 2 % is b = sqrt(2) %: conf 1/3)
     assert float(c0[2]) == pytest.approx(1.0 / 3.0) and float(c1[2]) == pytest.approx(1.0 / 3.0)
+
+
+def test_scales_say_which_psf_they_were_fitted_for(tmp_path):
+    """``psf``: profiled (the default, and what a file without the key was fitted for) or measured."""
+    s = LikelihoodScales(2.0, 0.5, psf="measured")
+    s.save(tmp_path / "m.json")
+    assert LikelihoodScales.load(tmp_path / "m.json").psf == "measured"
+    assert LikelihoodScales(2.0, 0.5).psf == "profiled"
+    (tmp_path / "old.json").write_text(json.dumps({"format": "tdfd.likelihood_scales/3", "fit": 2.0, "model": 0.5}))
+    assert LikelihoodScales.load(tmp_path / "old.json").psf == "profiled"
+    with pytest.raises(InputError, match="psf must be one of"):
+        LikelihoodScales(2.0, 0.5, psf="calibrated")
+    (tmp_path / "bad.json").write_text(json.dumps({"format": "tdfd.likelihood_scales/3", "fit": 2.0, "model": 0.5,
+                                                   "psf": "told"}))
+    with pytest.raises(ModelError, match="bad likelihood scales"):
+        LikelihoodScales.load(tmp_path / "bad.json")

@@ -47,6 +47,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from data_synth.psf import sample_psf_model
 from tdfd.dfd.inverse_variance import LikelihoodScales, model_sigma, sigma_factor
 from tdfd.dfd.likelihood_stage import LikelihoodStage, fuse_with_fit
 from tdfd.dfd.shared_bias import bias_map
@@ -54,9 +55,10 @@ from tdfd.model import DFDModel
 from tdfd.model.scale_calibration_fit import fit_scale_calibration, laplace_mixture_median
 
 from .calibrate_scale import PLANE_SEED, STRUCTURE_SEED, calibration_scene_sets
+from .calibrated_lens import sweep_fit
 
 __all__ = ["SLOPE_EDGES", "MIN_BAND_TILES", "BIAS_ITERATIONS", "BIAS_RADIUS", "FUSED_BINS", "FUSED_MIN_TILES_PER_BIN",
-           "black_levels", "collect_stage_errors", "image_biases", "model_error_without_bias", "fit_scales",
+           "CALIBRATION_SWEEP_SEED", "black_levels", "collect_stage_errors", "image_biases", "model_error_without_bias", "fit_scales",
            "fused_errors", "fit_fused_scale_map", "decile_ratios", "main"]
 
 #: the inner edges of the slope bands (:func:`tdfd.dfd.inverse_variance.tile_slope`)
@@ -72,6 +74,8 @@ BIAS_RADIUS = 3
 FUSED_BINS = 40
 #: the fewest tiles per bin of that map (fewer tiles: fewer bins, and below two bins no map)
 FUSED_MIN_TILES_PER_BIN = 25
+#: ``--calibrated-psf``: the focus sweeps' seeds (the benchmark's are ``benchmarks/bench_psf_model.py``'s)
+CALIBRATION_SWEEP_SEED = 8_000_000
 
 logger = logging.getLogger("training.fit_likelihood_stage")
 
@@ -81,20 +85,32 @@ def black_levels(params: list[dict]) -> list[float]:
     return [float(p["black_level_dn"]) / (2.0 ** int(p["bits"]) - 1.0) for p in params]
 
 
+def _calibrated_stage(model: DFDModel, params: dict, frames_per_power: int, seed: int) -> LikelihoodStage:
+    """The stage told the PSF of a scene's lens (``params``) as a focus sweep with ``frames_per_power``
+    frames per power measures it (:func:`training.calibrated_lens.sweep_fit`)."""
+    fit = sweep_fit(model.camera, sample_psf_model(params), seed, frames_per_power)
+    return LikelihoodStage.for_model(model, hypotheses=(fit.hypothesis,))
+
+
 @torch.no_grad()
-def collect_stage_errors(model: DFDModel, planes: int, scenes: int) -> dict[str, torch.Tensor]:
+def collect_stage_errors(model: DFDModel, planes: int, scenes: int, calibrated_psf: int = 0
+                         ) -> dict[str, torch.Tensor]:
     """The fit's and the model's relative errors (``q_true / q - 1``, the depth's) and raw
     sigmas on every fitted tile in the working range of the calibration scenes; ``set``: 0
     planes, 1.. the structure layouts; ``image``: the image's running index; ``row``, ``col``:
-    the tile's cell on the grid."""
+    the tile's cell on the grid. ``calibrated_psf`` > 0: each scene's stage is told its lens's
+    PSF as a focus sweep with that many frames per power measures it (seed
+    :data:`CALIBRATION_SWEEP_SEED` + 100000 x set + scene); 0: the PSF profiled, as shipped."""
     model.eval()
     near, far = model.camera.depth_range_m
     out: dict[str, list[torch.Tensor]] = {k: [] for k in ("fit_error", "fit_sigma", "model_error", "model_sigma",
                                                           "slope", "set", "image", "row", "col")}
-    stage = LikelihoodStage.for_model(model)  # raw sigmas: the factors are what this fits
+    profiled = LikelihoodStage.for_model(model)  # raw sigmas: the factors are what this fits
     for k, (name, ds, count, _) in enumerate(calibration_scene_sets(model, planes, scenes)):
         for i in tqdm(range(count), desc=f"likelihood stage: {name}", mininterval=10.0):
             s = ds.batch([i])
+            stage = (_calibrated_stage(model, s["params"][0], calibrated_psf,
+                                       CALIBRATION_SWEEP_SEED + 100_000 * k + i) if calibrated_psf else profiled)
             i1, i2 = s["image_f1"].float(), s["image_f2"].float()
             depth, conf = model.analyse(i1, i2).depth_map
             r = stage(i1, i2, depth, conf, black_level=black_levels(s["params"])[0])
@@ -216,14 +232,18 @@ def main(argv: list[str] | None = None) -> int:
                    help="measure the model's bias on the fitted tiles within this many tiles (0: the whole image)")
     p.add_argument("--fused-bins", type=int, default=FUSED_BINS,
                    help="equal-count bins of the fused scale for its map (0: no map)")
+    p.add_argument("--calibrated-psf", type=int, default=0, metavar="FRAMES",
+                   help="tell each scene's stage its lens's PSF as a focus sweep with FRAMES frames per power "
+                        "measures it (the scales of `tdfd depth --psf-model`; default 0: the PSF profiled)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    if args.planes < 1 or args.scenes < 0 or args.bias_radius < 0 or args.fused_bins == 1 or args.fused_bins < 0:
-        p.error("--planes must be >= 1, --scenes and --bias-radius >= 0, --fused-bins 0 or >= 2")
+    if (args.planes < 1 or args.scenes < 0 or args.bias_radius < 0 or args.fused_bins == 1 or args.fused_bins < 0
+            or args.calibrated_psf < 0):
+        p.error("--planes must be >= 1, --scenes, --bias-radius and --calibrated-psf >= 0, --fused-bins 0 or >= 2")
     torch.set_num_threads(args.threads)
     model = DFDModel.load(args.model)
     t0 = time.perf_counter()
-    errors = collect_stage_errors(model, args.planes, args.scenes)
+    errors = collect_stage_errors(model, args.planes, args.scenes, args.calibrated_psf)
     fitted = fit_scales(errors, remove_bias=args.shared_bias, bias_radius=args.bias_radius or None)
     fused_err, fused_b = fused_errors(errors, fitted)
     bins = min(args.fused_bins, fused_err.numel() // FUSED_MIN_TILES_PER_BIN)
@@ -244,9 +264,14 @@ def main(argv: list[str] | None = None) -> int:
                    f"--scenes {args.scenes}" + (f" --shared-bias --bias-radius {args.bias_radius}" if args.shared_bias
                                                   else "")
                    + (f" --fused-bins {args.fused_bins}" if args.fused_bins != FUSED_BINS else "")
+                   + (f" --calibrated-psf {args.calibrated_psf}" if args.calibrated_psf else "")
                    + (f" --out {args.out}" if args.out else ""),
         "planes": args.planes, "scenes_per_layout": args.scenes, "plane_seed": PLANE_SEED,
-        "structure_seed": STRUCTURE_SEED, "tiles": {"planes": counts[0], "slanted": counts[1], "layout": counts[2],
+        "structure_seed": STRUCTURE_SEED,
+        "psf": (f"each scene's lens calibrated from a focus sweep ({args.calibrated_psf} frame(s) per power, "
+                f"seed {CALIBRATION_SWEEP_SEED} + 100000 x set + scene; training.calibrated_lens)"
+                if args.calibrated_psf else "profiled over every shape"),
+        "tiles": {"planes": counts[0], "slanted": counts[1], "layout": counts[2],
                                                     "smooth": counts[3]},
         "median_abs_error": {"fit": float(errors["fit_error"].abs().median()),
                              "model": float(errors["model_error"].abs().median()),
@@ -261,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
         "wall_s": round(wall, 1),
     }
     path = Path(args.out or f"{args.model}.likelihood.json")
-    dataclasses.replace(fitted, provenance=provenance).save(path)
+    dataclasses.replace(fitted, provenance=provenance, psf="measured" if args.calibrated_psf else "profiled").save(path)
     logger.info("fit sigma factors %s, model sigma factors %s (slope bands at %s, %s tiles) on %d tiles (%s); fused "
                 "scale's decile ratios (most confident last) %s before its map, %s after; %.0f s; wrote %s",
                 [round(x, 4) for x in fitted.fit], [round(x, 4) for x in fitted.model], fitted.slope_edges,

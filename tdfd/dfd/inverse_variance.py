@@ -35,7 +35,7 @@ import torch
 from ..errors import InputError, ModelError
 from ..knot_map import calibrate_log_scale, validate_knots
 
-__all__ = ["MEDIAN_ABS_NORMAL", "SCALES_FORMAT", "model_sigma", "confidence_from_sigma", "sigma_factor", "fuse",
+__all__ = ["MEDIAN_ABS_NORMAL", "SCALES_FORMAT", "SCALES_PSF", "model_sigma", "confidence_from_sigma", "sigma_factor", "fuse",
            "LikelihoodScales", "tile_slope"]
 
 #: The median of ``|x|`` for a standard normal ``x``.
@@ -44,6 +44,8 @@ MEDIAN_ABS_NORMAL = 0.6744897501960817
 #: scale's map, still load: without them).
 SCALES_FORMAT = "tdfd.likelihood_scales/3"
 _FORMATS = ("tdfd.likelihood_scales/1", "tdfd.likelihood_scales/2", SCALES_FORMAT)
+#: the PSFs a scales file can be fitted for (:attr:`LikelihoodScales.psf`); a file without the key: profiled
+SCALES_PSF = ("profiled", "measured")
 _TINY = 1e-150  # squares stay above float64's smallest normal
 
 
@@ -138,6 +140,9 @@ class LikelihoodScales:
         fused_log_b, fused_log_b_calibrated: knots of the map of the fused Laplace scale
             (:meth:`fused_scale`; :func:`~tdfd.knot_map.validate_knots`), both or neither; ``None``:
             the fused scale as the two factors make it.
+        psf: the PSF the stage was told while they were fitted: ``"profiled"`` (over the family's
+            shapes, as shipped) or ``"measured"`` (each lens's own, from a focus sweep, as
+            ``tdfd depth --psf-model`` tells it); the fit's errors, hence its factors, differ.
         provenance: how they were fitted (command, data, counts); free-form, saved with them.
 
     Example:
@@ -154,6 +159,7 @@ class LikelihoodScales:
     bias_radius: int | None = field(default=None, kw_only=True)
     fused_log_b: tuple[float, ...] | None = field(default=None, kw_only=True)
     fused_log_b_calibrated: tuple[float, ...] | None = field(default=None, kw_only=True)
+    psf: str = field(default="profiled", kw_only=True)
 
     def __post_init__(self) -> None:
         bands = len(self.slope_edges) + 1
@@ -168,6 +174,8 @@ class LikelihoodScales:
         if any(not (math.isfinite(e) and e > 0) for e in edges) or any(b <= a for a, b in zip(edges, edges[1:])):
             raise InputError(f"slope_edges must be finite, > 0 and increasing, got {self.slope_edges!r}")
         object.__setattr__(self, "slope_edges", edges)
+        if self.psf not in SCALES_PSF:
+            raise InputError(f"psf must be one of {SCALES_PSF}, got {self.psf!r}")
         if not isinstance(self.shared_bias, bool):
             raise InputError(f"shared_bias must be a bool, got {self.shared_bias!r}")
         if self.bias_radius is not None and not (isinstance(self.bias_radius, int) and self.bias_radius >= 1):
@@ -226,6 +234,7 @@ class LikelihoodScales:
             return cls(fit=data["fit"], model=data["model"], slope_edges=tuple(data.get("slope_edges") or ()),
                        shared_bias=data.get("shared_bias", False), bias_radius=data.get("bias_radius"),
                        fused_log_b=data.get("fused_log_b"), fused_log_b_calibrated=data.get("fused_log_b_calibrated"),
+                       psf=data.get("psf", "profiled"),
                        provenance=dict(data.get("provenance") or {}))
         except (KeyError, TypeError, InputError) as e:
             raise ModelError(f"{path}: bad likelihood scales ({e})") from e
