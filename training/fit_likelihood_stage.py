@@ -3,6 +3,7 @@
 Run from the repository root (the shipped model's command and log: ``models/README.md``)::
 
     .venv/bin/python -m training.fit_likelihood_stage --model models/reference [--planes 128] [--scenes 6]
+        [--calibrated-psf FRAMES]
 
 The likelihood stage (:mod:`tdfd.dfd.likelihood_stage`) fuses the model's map with each tile's
 cross-residual fit by inverse variance. Both sigmas are off by a factor (the fit's tapered bins
@@ -29,6 +30,11 @@ of the same tiles' fused errors, :func:`fused_errors`): the fusion takes the two
 independent and the fit's curvature sigma for proportional to its error, and neither holds, so
 without the map the stage's confidence overstated its certainty in its most confident deciles
 (``docs/BENCHMARKS.md``, section ``likelihood_stage``).
+
+With ``--calibrated-psf FRAMES`` each scene's stage is told its own lens's PSF as a focus sweep
+measures it (:func:`training.calibrated_lens.sweep_fit`, FRAMES frames per power), not the PSF
+profiled: the scales of ``tdfd depth --psf-model`` (the shipped
+``models/reference.likelihood-calibrated.json``; the file's ``psf`` is then ``"measured"``).
 
 Writes ``<model>.likelihood.json`` (:class:`tdfd.dfd.inverse_variance.LikelihoodScales`, with the
 command, the scene counts, the tile counts, the medians and the in-sample decile ratios of the
