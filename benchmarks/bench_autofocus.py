@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .report import markdown_table, update_section
+from .report import markdown_table, repo_path, update_section
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "out" / "autofocus"
@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     n = 10 if args.quick else args.trials
     est = load_estimator(args.model)
     is_onnx = isinstance(est, OnnxEstimator)
-    est_name = (f"shipped ONNX model `{Path(est.path).relative_to(ROOT) if Path(est.path).is_relative_to(ROOT) else est.path}` "
+    est_name = (f"shipped ONNX model `{repo_path(est.path)}` "
                 f"via {est.backend}" if is_onnx else
                 "analytic Fourier-ratio estimator (torch) as a STAND-IN (the shipped ONNX model "
                 "`models/reference.onnx` was not available)")

@@ -52,7 +52,7 @@ from tdfd.errors import ModelError
 from tdfd.runtime import DepthRuntime
 
 from .bench_calibration import KNOWN_SCENES_M, NOMINAL, SELF_SCENES_M, TRUE
-from .report import ROOT, markdown_table, update_section
+from .report import ROOT, markdown_table, repo_path, update_section
 
 __all__ = ["main", "run_route", "capture_and_calibrate"]
 
@@ -185,9 +185,6 @@ def main(argv: list[str] | None = None) -> int:
                            "frames (median / max)", "declared out of focus", "not declared",
                            "first DFD estimate error dpt (median / max)", "bench time s"], rows)
 
-    def rel(m: Path) -> str:
-        return str(m.relative_to(ROOT)) if m.is_relative_to(ROOT) else str(m)
-
     body += (f"\n\n{args.trials} targets per route (textured planes of the bench's texture families, 0.3-1.0 m, "
              f"uniform in inverse depth, seed {args.seed}), single-shot DFD autofocus, 256x320 read-out. "
              "The simulated optics are the TRUE camera (mu +15 %, ECVFL 0.3 dpt stronger than commanded, "
@@ -201,11 +198,11 @@ def main(argv: list[str] | None = None) -> int:
     refused = {}
     for r in results:
         for m, why in r["refusals"]:
-            refused.setdefault(rel(m), why.split(":")[1].split(";")[0].strip() if ":" in why else why)
+            refused.setdefault(repo_path(m), why.split(":")[1].split(";")[0].strip() if ":" in why else why)
     for m, why in refused.items():
         body += f" `{m}` refuses the calibrated cameras ({why})."
     if CALIBRATED_MODEL in models:
-        body += (f" `{rel(CALIBRATED_MODEL)}` is the model trained for the self-calibrated camera by the documented "
+        body += (f" `{repo_path(CALIBRATED_MODEL)}` is the model trained for the self-calibrated camera by the documented "
                  "command (models/bench_calibrated/README.md: its working range widened to 0.3-1.5 m, so that the "
                  "known-distance calibration of the same camera, whose fixed lens it finds 0.30 dpt stronger, is "
                  "served too, with its inverse depth shifted: `tdfd.coverage`); it registers the breathing in its graph.")

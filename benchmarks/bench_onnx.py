@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .report import ROOT, markdown_table, update_section
+from .report import ROOT, markdown_table, repo_path, update_section
 
 __all__ = ["main", "time_calls", "latency_ratio", "TARGET_RATIO"]
 
@@ -123,7 +123,7 @@ def _load_model(weights: Path | None):
     from tdfd.model import DFDModel
 
     if weights is not None and weights.is_file():
-        return DFDModel.load(weights).eval(), str(weights.relative_to(ROOT) if weights.is_relative_to(ROOT) else weights)
+        return DFDModel.load(weights).eval(), repo_path(weights)
     return make_test_model(), "untrained stand-in (export.testing.make_test_model)"
 
 

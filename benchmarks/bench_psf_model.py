@@ -39,7 +39,6 @@ import dataclasses
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -52,7 +51,7 @@ from benchmarks.bench_refinement import BENCH_SEED, bench_tiles
 from benchmarks.bench_structure import STRUCTURE_SEED
 from benchmarks.bench_tile_oracle import interior_origins
 from benchmarks.depth_edges import edge_tiles
-from benchmarks.report import ROOT, comma_choices, machine, markdown_table, update_section
+from benchmarks.report import ROOT, comma_choices, machine, markdown_table, repo_path, update_section
 from benchmarks.stage_uncertainty import decile_summary, relative_inverse_depth_error
 from data_synth import DefocusPairDataset
 from tdfd.calibration.psf_model import PsfModelFit
@@ -107,8 +106,8 @@ def _stages(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], 
             "told": LikelihoodStage.for_model(model, scales=measured, hypotheses=(_hypothesis(lens),))}
 
 
-def plane_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], samples: int, world: str, frames_per_power: int
-               ) -> list[dict]:
+def plane_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], samples: int, world: str,
+               frames_per_power: int) -> list[dict]:
     """Per plane (0.3-1.0 m) of the refinement benchmark's first ``samples``: its interior tiles'
     true, model and stages' inverse depths and confidences, and its lens's calibration."""
     over = CLEAN_WORLD if world == "clean" else {}
@@ -143,7 +142,8 @@ def plane_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales
     return rows
 
 
-def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], scenes: int, frames_per_power: int) -> list[dict]:
+def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], scenes: int,
+                   frames_per_power: int) -> list[dict]:
     """Per 480x640 structure scene (the first ``scenes`` per layout): its tiles in the working
     range away from occlusion edges, true, model and each stage's depth and confidence."""
     near, far = model.camera.depth_range_m
@@ -179,12 +179,6 @@ def _plain(value: object) -> object:
     if isinstance(value, PSFModel):
         return dataclasses.asdict(value)
     return value
-
-
-def _shown(path: str) -> str:
-    """``path`` relative to the repository where it lies in it (what the docs print)."""
-    p = Path(path).resolve()
-    return str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else path
 
 
 def _pct(x: float) -> str:
@@ -273,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
     scales_paths = (args.scales or f"{args.model}.likelihood.json",
                     args.calibrated_scales or f"{args.model}.likelihood-calibrated.json")
     scales = (LikelihoodScales.load(scales_paths[0]), LikelihoodScales.load(scales_paths[1]))
-    shown = [_shown(x) for x in scales_paths]
+    shown = [repo_path(x) for x in scales_paths]
     t0 = time.perf_counter()
     rows = plane_rows(model, scales, args.samples, world[0], args.frames_per_power)
     srows = structure_rows(model, scales, args.structure, args.frames_per_power) if args.structure else []

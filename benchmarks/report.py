@@ -74,6 +74,12 @@ def comma_choices(parser: argparse.ArgumentParser, value: str, allowed: Sequence
     return items
 
 
+def repo_path(path: str | Path) -> str:
+    """``path`` relative to the repository where it lies in it, else as given (what the docs print)."""
+    p = Path(path)
+    return str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else str(path)
+
+
 def with_model_option(command: str, model: str | Path) -> str:
     """``command`` plus ``--model MODEL`` unless ``model`` is the shipped ``models/reference``."""
     if Path(model).resolve() == (ROOT / "models" / "reference").resolve():

@@ -35,6 +35,11 @@ log = logging.getLogger(__name__)
 
 __all__ = ["stage_for_runtime", "refine_result"]
 
+#: what to use instead, per PSF the stage is told, when its scales were fitted for the other
+_SCALES_HINT = {"measured": "fit the scales with --calibrated-psf, or use the shipped "
+                            "models/reference.likelihood-calibrated.json",
+                "profiled": "use scales fitted without --calibrated-psf, e.g. models/reference.likelihood.json"}
+
 
 def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: float = 0.0,
                       psf_model: dict | None = None) -> LikelihoodStage:
@@ -71,10 +76,7 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
     told = "profiled" if psf_model is None else "measured"
     if scales.psf != told:
         log.warning("%s was fitted for the stage with the PSF %s, this one has it %s: the fusion's weights and "
-                    "confidences will be off (%s)", scales_path, scales.psf, told,
-                    "fit the scales with --calibrated-psf, or use the shipped models/reference.likelihood-calibrated"
-                    ".json" if told == "measured" else "use scales fitted without --calibrated-psf, e.g. "
-                    "models/reference.likelihood.json")
+                    "confidences will be off (%s)", scales_path, scales.psf, told, _SCALES_HINT[told])
     return LikelihoodStage(rt.camera, rt.tile, rt.stride, float(b0), scales=scales,
                            family=rt.psf_family, hypotheses=hypotheses, black_level=black_level)
 

@@ -64,8 +64,8 @@ from .calibrate_scale import PLANE_SEED, STRUCTURE_SEED, calibration_scene_sets
 from .calibrated_lens import sweep_fit
 
 __all__ = ["SLOPE_EDGES", "MIN_BAND_TILES", "BIAS_ITERATIONS", "BIAS_RADIUS", "FUSED_BINS", "FUSED_MIN_TILES_PER_BIN",
-           "CALIBRATION_SWEEP_SEED", "black_levels", "collect_stage_errors", "image_biases", "model_error_without_bias", "fit_scales",
-           "fused_errors", "fit_fused_scale_map", "decile_ratios", "main"]
+           "CALIBRATION_SWEEP_SEED", "black_levels", "collect_stage_errors", "image_biases", "model_error_without_bias",
+           "fit_scales", "fused_errors", "fit_fused_scale_map", "decile_ratios", "main"]
 
 #: the inner edges of the slope bands (:func:`tdfd.dfd.inverse_variance.tile_slope`)
 SLOPE_EDGES = (0.01, 0.03)
