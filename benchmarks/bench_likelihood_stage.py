@@ -49,9 +49,9 @@ from dataclasses import replace
 import torch
 from tqdm import tqdm
 
-from benchmarks.bench_bound import STRIDE, TILE, psf_model
+from benchmarks.bench_bound import TILE, psf_model
 from benchmarks.bench_plane_oracle import CLEAN_WORLD, Q_GRID, SHAPE_GRID, plane_frames
-from benchmarks.bench_refinement import BENCH_SEED, bench_tiles
+from benchmarks.bench_refinement import BENCH_SEED, bench_grids
 from benchmarks.bench_structure import STRUCTURE_SEED
 from benchmarks.bench_tile_oracle import SEED_WINDOW, interior_origins, profile_tiles, tile_nll_stack, tile_noise
 from benchmarks.report import ROOT, comma_choices, machine, markdown_table, median_time, update_section
@@ -61,10 +61,8 @@ from tdfd.dfd.cross_residual import curvature_sigma, independent_bins
 from tdfd.dfd.inverse_variance import LikelihoodScales, fuse, model_sigma, sigma_factor
 from tdfd.dfd.likelihood_stage import LikelihoodStage
 from tdfd.dfd.seeded_fit import seed_mask
-from data_synth import DefocusPairDataset
 from tdfd.errors import InputError
 from tdfd.model import DFDModel
-from training.config import EvalConfig
 from training.data import textured_scenes
 from training.fit_likelihood_stage import black_levels
 
@@ -120,11 +118,8 @@ def run_world(world: str, samples: int, model: DFDModel, modes: tuple[str, ...] 
     scales (``baseline_q``, ``baseline_conf``)."""
     over = CLEAN_WORLD if world == "clean" else {}
     camera = model.camera
-    n = (256 - TILE) // STRIDE + 1
-    tiles = bench_tiles(model, samples, 256, over)
-    true, ref, conf = (tiles[k].reshape(samples, n, n).double() for k in ("true", "refined", "confidence"))
-    ev = EvalConfig(samples=samples, seed=BENCH_SEED, height=256, width=256)
-    ds = DefocusPairDataset(size=256, camera=camera, seed=BENCH_SEED, tile=TILE, stride=STRIDE, **{**ev.options, **over})
+    grids, ds = bench_grids(model, samples, 256, over)
+    true, ref, conf = (grids[k].double() for k in ("true", "refined", "confidence"))
     origins, inner = interior_origins(256)
     bins = independent_bins(TILE)
     rows = []

@@ -3,12 +3,12 @@ r"""The lens's whole PSF measured from a focus sweep, and the likelihood stage t
 Run from the repository root::
 
     .venv/bin/python -m benchmarks.bench_psf_model [--samples 256] [--world full] [--structure 16]
-        [--frames-per-power 2] [--scales S.json] [--calibrated-scales S.json] [--no-write]
+        [--frames-per-power 2] [--sweep-chart dead_leaves] [--scales S.json] [--calibrated-scales S.json] [--no-write]
 
 Every sample of the benchmarks has its own lens (``data_synth``'s draw: a shape between Gaussian
 and disk, diffraction, astigmatism, spherical aberration). Here each is calibrated as a user
-calibrates theirs (:func:`training.calibrated_lens.sweep_fit`): a focus sweep of a band-limited
-chart at 0.5 m through that lens (:class:`tdfd.capture.sim.SimulatedRig`: 256x256, 12-bit, shot
+calibrates theirs (:func:`training.calibrated_lens.sweep_fit`): a focus sweep of a chart
+(``--sweep-chart``, default dead leaves: detail at every scale) at 0.5 m through that lens (:class:`tdfd.capture.sim.SimulatedRig`: 256x256, 12-bit, shot
 and read noise), 7 powers over +-3 px of blur, ``--frames-per-power`` frames at each averaged,
 fitted by :func:`tdfd.calibration.psf_model.psf_model_from_frames` on its 2 central 128-px
 regions. Then four likelihood stages (:mod:`tdfd.dfd.likelihood_stage`) run on the sample's pair
@@ -27,15 +27,20 @@ after the shipped model, on the same model map:
 Reports the calibration's error (the kernels at +-1, +-2, +-3 px of blur against the true
 lens's without its diffraction, which the sweep cannot see: relative L2; astigmatism and
 spherical weight; the profiled stage's chosen PSF beside it) and each stage's median error on the
-planes' 25 interior tiles (per tile and per plane, paired bootstrap over planes) and on the
-structure benchmark's first scenes (away from occlusion edges), and writes section
-``psf_model`` of docs/BENCHMARKS.md.
+planes' 25 interior tiles (per tile and per plane, paired bootstrap over planes; against the
+Cramér-Rao bound on the same tiles with the PSF shared by the image,
+:mod:`benchmarks.bench_bound`'s model: overall as the at-bound score, and per texture family as
+the ratio issue 19 caps at 2x) and on the structure benchmark's first scenes (away from occlusion
+edges), and writes section ``psf_model`` of docs/BENCHMARKS.md. ``--rows`` also saves every
+plane's tiles (each stage's fused and fitted inverse depth, the fit's raw sigma and slope, so that
+other scales can fuse the very same fits again) and every scene's.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import statistics
 import sys
 import time
@@ -44,25 +49,24 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from benchmarks.bench_bound import psf_model
+from benchmarks.bench_bound import MEDIAN_ABS, depth_variances, median_at_bound, plane_fisher, psf_model, psf_prior_variance
 from benchmarks.bench_likelihood_stage import paired_bootstrap
 from benchmarks.bench_plane_oracle import CLEAN_WORLD
-from benchmarks.bench_refinement import BENCH_SEED, bench_tiles
+from benchmarks.bench_refinement import BENCH_SEED, bench_grids
 from benchmarks.bench_structure import STRUCTURE_SEED
 from benchmarks.bench_tile_oracle import interior_origins
 from benchmarks.depth_edges import edge_tiles
 from benchmarks.report import ROOT, comma_choices, machine, markdown_table, repo_path, update_section
 from benchmarks.stage_uncertainty import decile_summary, relative_inverse_depth_error
-from data_synth import DefocusPairDataset
+from data_synth.params import SynthConfig
 from tdfd.calibration.psf_model import PsfModelFit
 from tdfd.dfd.inverse_variance import LikelihoodScales
 from tdfd.dfd.likelihood_stage import LikelihoodStage
 from tdfd.dfd.psf_hypotheses import PsfHypothesis
 from tdfd.model import DFDModel
 from tdfd.optics.aberrated_psf import PSFModel
-from training.calibrated_lens import (SWEEP_DISTANCE_M, SWEEP_HALF_SPAN_PX, SWEEP_POWERS, SWEEP_REGIONS, SWEEP_SIZE,
-                                      sweep_fit)
-from training.config import EvalConfig
+from training.calibrated_lens import (SWEEP_CHART, SWEEP_CHARTS, SWEEP_DISTANCE_M, SWEEP_HALF_SPAN_PX, SWEEP_POWERS,
+                                      SWEEP_REGIONS, SWEEP_SIZE, sweep_fit)
 from training.data import STRUCTURE_LAYOUTS, textured_scenes
 from training.fit_likelihood_stage import black_levels
 
@@ -107,17 +111,14 @@ def _stages(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], 
 
 
 def plane_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], samples: int, world: str,
-               frames_per_power: int) -> list[dict]:
+               frames_per_power: int, chart: str = SWEEP_CHART) -> list[dict]:
     """Per plane (0.3-1.0 m) of the refinement benchmark's first ``samples``: its interior tiles'
     true, model and stages' inverse depths and confidences, and its lens's calibration."""
     over = CLEAN_WORLD if world == "clean" else {}
-    n = (256 - model.tile) // model.stride + 1
-    tiles = bench_tiles(model, samples, 256, over)
-    true, ref, conf = (tiles[k].reshape(samples, n, n) for k in ("true", "refined", "confidence"))
-    ev = EvalConfig(samples=samples, seed=BENCH_SEED, height=256, width=256)
-    ds = DefocusPairDataset(size=256, camera=model.camera, seed=BENCH_SEED, tile=model.tile, stride=model.stride,
-                            **{**ev.options, **over})
+    grids, ds = bench_grids(model, samples, 256, over, return_sharp=True)
+    true, ref, conf = (grids[k] for k in ("true", "refined", "confidence"))
     _, inner = interior_origins(256)
+    prior_var = psf_prior_variance(SynthConfig(), model.camera)
     rows = []
     for i in tqdm(range(samples), desc=f"psf model: planes ({world})", mininterval=10.0):
         s = ds[i]
@@ -126,16 +127,24 @@ def plane_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales
             continue
         lens = psf_model(p)
         t0 = time.perf_counter()
-        fit = sweep_fit(model.camera, lens, SWEEP_SEED + i, frames_per_power)
+        fit = sweep_fit(model.camera, lens, SWEEP_SEED + i, frames_per_power, chart)
         row = {"index": i, "seconds": time.perf_counter() - t0, "lens": lens, "fit": fit,
                "true_q": (1.0 / true[i][inner, inner].flatten().double()),
                "model_q": (1.0 / ref[i][inner, inner].flatten().double()),
-               "model_conf": conf[i][inner, inner].flatten().double()}
+               "model_conf": conf[i][inner, inner].flatten().double(),
+               "family": json.loads(p["details"])["textures"][0]["family"]}
+        d = float(true[i].median())  # the bound at the plane's depth, the PSF shared by the image (bench_bound)
+        var = depth_variances(plane_fisher(model.camera, s["sharp"][0], d, p), prior_var)["tile_shared"]
+        row["bound"] = (var.sqrt() * d)[inner, inner].flatten()
         for name, stage in _stages(model, scales, fit, lens).items():
             r = stage(s["image_f1"][None].float(), s["image_f2"][None].float(), ref[i][None, None],
                       conf[i][None, None], black_level=black_levels([p])[0])
             row[f"{name}_q"] = 1.0 / r.depth[0, 0, inner, inner].flatten().double()
             row[f"{name}_conf"] = r.confidence[0, 0, inner, inner].flatten().double()
+            # the fit alone, for A/Bs of the fusion on the same fits (benchmarks.stage_rows.refused's inputs)
+            row[f"{name}_fit_q"] = 1.0 / r.depth_fit[0, 0, inner, inner].flatten().double()
+            row[f"{name}_fit_sigma_raw"] = r.sigma_fit_raw[0, 0, inner, inner].flatten()
+            row[f"{name}_slope"] = r.slope[0, 0, inner, inner].flatten().double()
             if name == "profiled":
                 row["profiled_psf"] = r.hypotheses[0]
         rows.append(row)
@@ -143,7 +152,7 @@ def plane_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales
 
 
 def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], scenes: int,
-                   frames_per_power: int) -> list[dict]:
+                   frames_per_power: int, chart: str = SWEEP_CHART) -> list[dict]:
     """Per 480x640 structure scene (the first ``scenes`` per layout): its tiles in the working
     range away from occlusion edges, true, model and each stage's depth and confidence."""
     near, far = model.camera.depth_range_m
@@ -157,7 +166,7 @@ def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodSc
                 depth, conf = model.analyse(i1, i2).depth_map
             lens = psf_model(b["params"][0])
             fit = sweep_fit(model.camera, lens, SWEEP_SEED + 100_000 + 1000 * STRUCTURE_LAYOUTS.index(layout) + i,
-                            frames_per_power)
+                            frames_per_power, chart)
             true = b["tile_depth"][0, 0].double()
             keep = (true >= near) & (true <= far) & ~edge_tiles(b["depth"][0, 0], model.tile, model.stride)
             row = {"layout": layout, "scene": i, "true": true[keep], "model": depth[0, 0][keep].double(),
@@ -198,6 +207,33 @@ def plane_table(rows: list[dict]) -> tuple[list[list[object]], list[str]]:
         lines.append(f"- {a} - {b}: per tile {100 * mt:+.2f} points (95 %: {100 * lo:+.2f} .. {100 * hi:+.2f}), "
                      f"per plane {100 * mp:+.2f} ({100 * plo:+.2f} .. {100 * phi:+.2f})")
     return table, lines
+
+
+def bound_line(rows: list[dict]) -> str:
+    """The planes' interior tiles at the Cramér-Rao bound (PSF shared by the image): the median an
+    unbiased estimator reaching it on every tile would score (:func:`benchmarks.bench_bound.median_at_bound`),
+    and each estimator's per-tile median over it."""
+    at_bound = median_at_bound(torch.cat([r["bound"] for r in rows]))
+    ratios = ", ".join(f"{k} {float(torch.cat([(r['true_q'] / r[f'{k}_q'] - 1).abs() for r in rows]).median()) / at_bound:.2f}x"
+                       for k in ("model", *STAGES))
+    return (f"At the bound (PSF shared by the image, the same interior tiles, `bench_bound`'s model): "
+            f"{_pct(at_bound)} per tile; each estimator's median per tile over it: {ratios}.")
+
+
+def family_table(rows: list[dict]) -> list[list[object]]:
+    """Per texture family (the plane's first texture): planes, the per-tile bound (PSF shared:
+    0.674 times its median standard deviation, as ``bench_bound``'s family table) and each
+    estimator's median error per tile with its ratio to that bound."""
+    table = []
+    for name in sorted({r["family"] for r in rows}):
+        sel = [r for r in rows if r["family"] == name]
+        bound = MEDIAN_ABS * float(torch.cat([r["bound"] for r in sel]).median())
+        cells = []
+        for k in ("model", *STAGES):
+            e = float(torch.cat([(r["true_q"] / r[f"{k}_q"] - 1).abs() for r in sel]).median())
+            cells.append(f"{_pct(e)} ({e / bound:.1f}x)")
+        table.append([name, len(sel), _pct(bound), *cells])
+    return table
 
 
 def calibration_table(rows: list[dict]) -> list[list[object]]:
@@ -249,6 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--world", default="full", help="clean or full (the benchmark's whole world)")
     p.add_argument("--structure", type=int, default=16, help="structure scenes per layout (0: none)")
     p.add_argument("--frames-per-power", type=int, default=2, help="sweep frames averaged at each power")
+    p.add_argument("--sweep-chart", default=SWEEP_CHART, choices=SWEEP_CHARTS,
+                   help="the texture family the calibration sweeps see")
     p.add_argument("--model", default=str(ROOT / "models" / "reference"))
     p.add_argument("--scales", default="", help="the profiled stage's sigma factors (default: MODEL.likelihood.json)")
     p.add_argument("--calibrated-scales", default="",
@@ -269,8 +307,9 @@ def main(argv: list[str] | None = None) -> int:
     scales = (LikelihoodScales.load(scales_paths[0]), LikelihoodScales.load(scales_paths[1]))
     shown = [repo_path(x) for x in scales_paths]
     t0 = time.perf_counter()
-    rows = plane_rows(model, scales, args.samples, world[0], args.frames_per_power)
-    srows = structure_rows(model, scales, args.structure, args.frames_per_power) if args.structure else []
+    rows = plane_rows(model, scales, args.samples, world[0], args.frames_per_power, args.sweep_chart)
+    srows = (structure_rows(model, scales, args.structure, args.frames_per_power, args.sweep_chart)
+             if args.structure else [])
     wall = time.perf_counter() - t0
     if args.rows:
         torch.save({"planes": [{k: _plain(v) for k, v in r.items()} for r in rows], "structure": srows}, args.rows)
@@ -279,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
         f"Machine: {machine()}; the refinement benchmark's first {args.samples} samples (seed {BENCH_SEED}, 256 px, "
         f"world `{world[0]}`), {len(rows)} planes in 0.3-1.0 m, their 25 interior tiles; wall time {wall:.0f} s. Each "
         f"lens calibrated from a sweep of {SWEEP_POWERS} powers over +-{SWEEP_HALF_SPAN_PX:.0f} px of blur, "
-        f"{args.frames_per_power} frame(s) averaged per power, a band-limited chart at {SWEEP_DISTANCE_M} m "
+        f"{args.frames_per_power} frame(s) averaged per power, a `{args.sweep_chart}` chart at {SWEEP_DISTANCE_M} m "
         f"({SWEEP_SIZE[0]}x{SWEEP_SIZE[1]}, 12-bit, noise on; {SWEEP_REGIONS} regions of 128 px). The stages' scales: "
         f"`{shown[0]}` (`profiled`, `calibrated_shipped_scales`: the shipped stage's, fitted with the PSF "
         f"profiled), `{shown[1]}` (`calibrated`, `told`: fitted with each training scene's lens calibrated "
@@ -295,6 +334,13 @@ def main(argv: list[str] | None = None) -> int:
         "Median error on the planes' interior tiles, per tile / per plane:",
         "",
         markdown_table(["estimator", "per tile", "per plane"], planes),
+        "",
+        bound_line(rows),
+        "",
+        "Per texture family (the plane's first texture), median error per tile and its ratio to the family's "
+        "per-tile bound (PSF shared by the image; issue 19 asks <= 2x):",
+        "",
+        markdown_table(["family", "planes", "per tile: bound", "model", *STAGES], family_table(rows)),
         "",
         "Paired bootstrap over planes (1000 resamples, seed 0):",
         "",
@@ -313,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
     print(body)
     if not args.no_write:
         cmd = (f".venv/bin/python -m benchmarks.bench_psf_model --samples {args.samples} --world {world[0]} "
-               f"--structure {args.structure} --frames-per-power {args.frames_per_power}"
+               f"--structure {args.structure} --frames-per-power {args.frames_per_power} --sweep-chart {args.sweep_chart}"
                + (f" --scales {args.scales}" if args.scales else "")
                + (f" --calibrated-scales {args.calibrated_scales}" if args.calibrated_scales else ""))
         update_section("psf_model", "The lens's PSF measured from a focus sweep, the likelihood stage told it "

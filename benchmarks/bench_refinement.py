@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 
 from benchmarks.report import ROOT, markdown_table, median_time, update_section
+from data_synth import DefocusPairDataset
 from tdfd.model import DFDModel
 from training.config import DataConfig, EvalConfig, ModelConfig
 from training.data import make_dataset
@@ -62,6 +63,19 @@ def bench_tiles(model: DFDModel, samples: int, size: int, overrides: dict | None
     data = DataConfig(**{**DataConfig().__dict__, "options": {**ev.options, **(overrides or {})}})
     with torch.no_grad():
         return collect(model, make_dataset(data, _model_cfg(model), ev.seed, size, size), samples)
+
+
+def bench_grids(model: DFDModel, samples: int, size: int = 256, overrides: dict | None = None,
+                return_sharp: bool = False) -> tuple[dict[str, torch.Tensor], DefocusPairDataset]:
+    """:func:`bench_tiles`' ``true``, ``refined`` and ``confidence`` as ``(samples, n, n)`` tile grids,
+    and the same samples as a :class:`data_synth.DefocusPairDataset` (its frames and parameters; with
+    ``return_sharp`` the sharp radiance too), for the benchmarks that run a stage after the model."""
+    n = (size - model.tile) // model.stride + 1
+    tiles = bench_tiles(model, samples, size, overrides)
+    ev = EvalConfig(samples=samples, seed=BENCH_SEED, height=size, width=size)
+    ds = DefocusPairDataset(size=size, camera=model.camera, seed=BENCH_SEED, tile=model.tile, stride=model.stride,
+                            return_sharp=return_sharp, **{**ev.options, **(overrides or {})})
+    return {k: tiles[k].reshape(samples, n, n) for k in ("true", "refined", "confidence")}, ds
 
 
 def plane_errors(model: DFDModel, samples: int, size: int) -> dict[str, float]:

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
+import pytest
 import torch
 
-from benchmarks.bench_psf_model import STAGES, kernel_error, plane_table
+from benchmarks.bench_psf_model import STAGES, bound_line, family_table, kernel_error, plane_table
+from tdfd.errors import InputError
 from tdfd.dfd.psf_hypotheses import PsfHypothesis
 from tdfd.optics.aberrated_psf import PSFModel
 
@@ -34,3 +38,36 @@ def test_the_plane_table_scores_every_stage_against_the_truth():
     assert cells["model"] == f"{100 * abs(1 / 1.04 - 1):.2f} %" and cells["told"] == "0.00 %"
     assert len(lines) == 4 and lines[0].startswith("- calibrated - profiled: per tile -0.9")
     assert lines[2].startswith("- calibrated - calibrated_shipped_scales: per tile -0.4")
+
+
+def test_the_family_table_divides_each_familys_error_by_its_own_bound():
+    true = torch.full((25,), 2.0, dtype=torch.float64)
+    rows = []
+    for i, (family, err, bound) in enumerate((("dots", 0.01, 0.004), ("dots", 0.03, 0.004), ("stripes", 0.02, 0.02))):
+        row = {"index": i, "family": family, "true_q": true, "model_q": true / (1 + err),
+               "bound": torch.full((25,), bound / 0.6745, dtype=torch.float64)}
+        for k in STAGES:
+            row[f"{k}_q"] = true / (1 + err / 2)
+        rows.append(row)
+    table = {r[0]: r for r in family_table(rows)}
+    assert table["dots"][1] == 2 and table["stripes"][1] == 1
+    assert table["dots"][2] == "0.40 %"  # 0.6745 x the median standard deviation
+    # dots: the median of 25 tiles at 1 % and 25 at 3 % is 1 % (torch's lower median): 2.5x the bound
+    assert table["dots"][3] == "1.00 % (2.5x)" and table["stripes"][3] == "2.00 % (1.0x)"
+    assert table["stripes"][4] == "1.00 % (0.5x)"
+    line = bound_line(rows)
+    assert "per tile; each estimator's median per tile over it: model " in line
+
+
+def test_psf_parameters_out_of_range_are_named_by_both_psf_classes():
+    for bad in (dict(diffraction=math.inf), dict(angle=math.nan), dict(astig=0.5), dict(spherical=-0.5)):
+        args = (5.0, bad.get("diffraction", 0.0), bad.get("astig", 0.1), bad.get("angle", 0.0),
+                bad.get("spherical", 0.0))
+        for cls in (PSFModel, PsfHypothesis):
+            with pytest.raises(InputError, match="diffraction" if "diffraction" in bad else "astigmatism"):
+                cls(*args)
+    for cls in (PSFModel, PsfHypothesis):
+        with pytest.raises(InputError, match="beta"):
+            cls(math.inf)
+        with pytest.raises(InputError, match="unknown PSF shape"):
+            cls("disk")

@@ -32,3 +32,16 @@ def test_the_sweep_measures_the_lens_and_refuses_no_frames():
     assert h.sigma_scale == pytest.approx(1.0, abs=0.06) and h.diffraction_px == 0.0  # the sweep cannot see it
     with pytest.raises(InputError, match="frames_per_power"):
         sweep_fit(CAM, lens, seed=3, frames_per_power=0)
+
+
+def test_a_chart_with_detail_at_every_scale_gives_the_blur_scale_a_band_limited_one_loses():
+    # benchmarks/bench_psf_model.py's plane 243 (sweep seed 7 000 000 + 243): a plain Gaussian lens whose
+    # band-limited sweep fitted a blur scale of 1.9 (kernels 70 % off) at a slightly lower cost than the truth
+    lens = PSFModel("gaussian")
+    band_limited = sweep_fit(CAM, lens, seed=7_000_243, frames_per_power=2, chart="bandlimited").hypothesis
+    dead_leaves = sweep_fit(CAM, lens, seed=7_000_243, frames_per_power=2).hypothesis
+    assert band_limited.sigma_scale > 1.5
+    assert dead_leaves.sigma_scale == pytest.approx(1.0, abs=0.02)
+    assert dead_leaves.astigmatism < 0.02 and abs(dead_leaves.spherical) < 0.05
+    with pytest.raises(InputError, match="chart"):
+        sweep_fit(CAM, lens, seed=3, frames_per_power=1, chart="flat")

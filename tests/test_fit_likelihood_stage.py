@@ -90,18 +90,18 @@ def test_the_fit_writes_a_scales_file_with_its_provenance(tmp_path, monkeypatch)
 
     calls, real = [], fls.sweep_fit
 
-    def spy(camera, lens, seed, frames_per_power):
-        calls.append((lens, seed, frames_per_power))
-        return real(camera, lens, seed, frames_per_power)
+    def spy(camera, lens, seed, frames_per_power, chart):
+        calls.append((lens, seed, frames_per_power, chart))
+        return real(camera, lens, seed, frames_per_power, chart)
 
     monkeypatch.setattr(fls, "sweep_fit", spy)
     assert main(["--model", str(stem), "--planes", "1", "--scenes", "0", "--calibrated-psf", "1",
                  "--out", str(tmp_path / "c.json")]) == 0
     first = calibration_scene_sets(DFDModel.load(stem), 1, 0)[0][1].batch([0])["params"][0]
-    assert calls == [(sample_psf_model(first), fls.CALIBRATION_SWEEP_SEED, 1)]  # the scene's own lens
+    assert calls == [(sample_psf_model(first), fls.CALIBRATION_SWEEP_SEED, 1, "dead_leaves")]  # the scene's own lens
     measured = LikelihoodScales.load(tmp_path / "c.json")
     assert measured.psf == "measured" and "--calibrated-psf 1" in measured.provenance["command"]
-    assert "focus sweep (1 frame(s) per power" in measured.provenance["psf"]
+    assert "focus sweep of a dead_leaves chart (1 frame(s) per power" in measured.provenance["psf"]
     with pytest.raises(SystemExit):
         main(["--model", str(stem), "--planes", "1", "--calibrated-psf", "-1"])
 

@@ -61,7 +61,7 @@ from tdfd.model import DFDModel
 from tdfd.model.scale_calibration_fit import fit_scale_calibration, laplace_mixture_median
 
 from .calibrate_scale import PLANE_SEED, STRUCTURE_SEED, calibration_scene_sets
-from .calibrated_lens import sweep_fit
+from .calibrated_lens import SWEEP_CHART, SWEEP_CHARTS, sweep_fit
 
 __all__ = ["SLOPE_EDGES", "MIN_BAND_TILES", "BIAS_ITERATIONS", "BIAS_RADIUS", "FUSED_BINS", "FUSED_MIN_TILES_PER_BIN",
            "CALIBRATION_SWEEP_SEED", "black_levels", "collect_stage_errors", "image_biases", "model_error_without_bias",
@@ -91,22 +91,24 @@ def black_levels(params: list[dict]) -> list[float]:
     return [float(p["black_level_dn"]) / (2.0 ** int(p["bits"]) - 1.0) for p in params]
 
 
-def _calibrated_stage(model: DFDModel, params: dict, frames_per_power: int, seed: int) -> LikelihoodStage:
-    """The stage told the PSF of a scene's lens (``params``) as a focus sweep with ``frames_per_power``
-    frames per power measures it (:func:`training.calibrated_lens.sweep_fit`)."""
-    fit = sweep_fit(model.camera, sample_psf_model(params), seed, frames_per_power)
+def _calibrated_stage(model: DFDModel, params: dict, frames_per_power: int, seed: int, chart: str = SWEEP_CHART
+                      ) -> LikelihoodStage:
+    """The stage told the PSF of a scene's lens (``params``) as a focus sweep of ``chart`` with
+    ``frames_per_power`` frames per power measures it (:func:`training.calibrated_lens.sweep_fit`)."""
+    fit = sweep_fit(model.camera, sample_psf_model(params), seed, frames_per_power, chart)
     return LikelihoodStage.for_model(model, hypotheses=(fit.hypothesis,))
 
 
 @torch.no_grad()
-def collect_stage_errors(model: DFDModel, planes: int, scenes: int, calibrated_psf: int = 0
-                         ) -> dict[str, torch.Tensor]:
+def collect_stage_errors(model: DFDModel, planes: int, scenes: int, calibrated_psf: int = 0,
+                         sweep_chart: str = SWEEP_CHART) -> dict[str, torch.Tensor]:
     """The fit's and the model's relative errors (``q_true / q - 1``, the depth's) and raw
     sigmas on every fitted tile in the working range of the calibration scenes; ``set``: 0
     planes, 1.. the structure layouts; ``image``: the image's running index; ``row``, ``col``:
     the tile's cell on the grid. ``calibrated_psf`` > 0: each scene's stage is told its lens's
     PSF as a focus sweep with that many frames per power measures it (seed
-    :data:`CALIBRATION_SWEEP_SEED` + 100000 x set + scene); 0: the PSF profiled, as shipped."""
+    :data:`CALIBRATION_SWEEP_SEED` + 100000 x set + scene; the chart ``sweep_chart``); 0: the PSF
+    profiled, as shipped."""
     model.eval()
     near, far = model.camera.depth_range_m
     out: dict[str, list[torch.Tensor]] = {k: [] for k in ("fit_error", "fit_sigma", "model_error", "model_sigma",
@@ -116,7 +118,8 @@ def collect_stage_errors(model: DFDModel, planes: int, scenes: int, calibrated_p
         for i in tqdm(range(count), desc=f"likelihood stage: {name}", mininterval=10.0):
             s = ds.batch([i])
             stage = (_calibrated_stage(model, s["params"][0], calibrated_psf,
-                                       CALIBRATION_SWEEP_SEED + 100_000 * k + i) if calibrated_psf else profiled)
+                                       CALIBRATION_SWEEP_SEED + 100_000 * k + i, sweep_chart)
+                     if calibrated_psf else profiled)
             i1, i2 = s["image_f1"].float(), s["image_f2"].float()
             depth, conf = model.analyse(i1, i2).depth_map
             r = stage(i1, i2, depth, conf, black_level=black_levels(s["params"])[0])
@@ -241,6 +244,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--calibrated-psf", type=int, default=0, metavar="FRAMES",
                    help="tell each scene's stage its lens's PSF as a focus sweep with FRAMES frames per power "
                         "measures it (the scales of `tdfd depth --psf-model`; default 0: the PSF profiled)")
+    p.add_argument("--sweep-chart", default=SWEEP_CHART, choices=SWEEP_CHARTS,
+                   help=f"with --calibrated-psf, the texture family the sweeps see (default {SWEEP_CHART}; "
+                        "models/reference.likelihood-calibrated.json was fitted with bandlimited)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if (args.planes < 1 or args.scenes < 0 or args.bias_radius < 0 or args.fused_bins == 1 or args.fused_bins < 0
@@ -249,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     model = DFDModel.load(args.model)
     t0 = time.perf_counter()
-    errors = collect_stage_errors(model, args.planes, args.scenes, args.calibrated_psf)
+    errors = collect_stage_errors(model, args.planes, args.scenes, args.calibrated_psf, args.sweep_chart)
     fitted = fit_scales(errors, remove_bias=args.shared_bias, bias_radius=args.bias_radius or None)
     fused_err, fused_b = fused_errors(errors, fitted)
     bins = min(args.fused_bins, fused_err.numel() // FUSED_MIN_TILES_PER_BIN)
@@ -271,10 +277,13 @@ def main(argv: list[str] | None = None) -> int:
                                                   else "")
                    + (f" --fused-bins {args.fused_bins}" if args.fused_bins != FUSED_BINS else "")
                    + (f" --calibrated-psf {args.calibrated_psf}" if args.calibrated_psf else "")
+                   + (f" --sweep-chart {args.sweep_chart}" if args.calibrated_psf and args.sweep_chart != SWEEP_CHART
+                      else "")
                    + (f" --out {args.out}" if args.out else ""),
         "planes": args.planes, "scenes_per_layout": args.scenes, "plane_seed": PLANE_SEED,
         "structure_seed": STRUCTURE_SEED,
-        "psf": (f"each scene's lens calibrated from a focus sweep ({args.calibrated_psf} frame(s) per power, "
+        "psf": (f"each scene's lens calibrated from a focus sweep of a {args.sweep_chart} chart "
+                f"({args.calibrated_psf} frame(s) per power, "
                 f"seed {CALIBRATION_SWEEP_SEED} + 100000 x set + scene; training.calibrated_lens)"
                 if args.calibrated_psf else "profiled over every shape"),
         "tiles": {"planes": counts[0], "slanted": counts[1], "layout": counts[2],

@@ -27,7 +27,6 @@ Example:
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -36,7 +35,7 @@ import torch
 from ..camera import Camera
 from ..camera_file import check_psf_model
 from ..errors import InputError, ShapeError
-from ..optics.aberrated_psf import PSFModel
+from ..optics.aberrated_psf import PSFModel, check_psf_parameters
 from ..optics.psf import (PSFShape, convolve_gaussian, diffraction_pad, diffraction_sigma_px, kernel_size_for,
                           psf_kernel)
 
@@ -84,17 +83,7 @@ class PsfHypothesis:
     sigma_scale: float = 1.0
 
     def __post_init__(self) -> None:
-        if isinstance(self.shape, str):
-            if self.shape not in ("gaussian", "pillbox"):
-                raise InputError(f"unknown PSF shape {self.shape!r}; use 'gaussian', 'pillbox' or a beta >= 1")
-        elif not float(self.shape) >= 1.0:
-            raise InputError(f"a power-exponential shape needs beta >= 1, got {self.shape}")
-        if not (self.diffraction_px >= 0 and self.diffraction_px < 1e3):
-            raise InputError(f"diffraction_px must be finite and >= 0, got {self.diffraction_px}")
-        if not (0.0 <= self.astigmatism < 0.5 and math.isfinite(self.astigmatism_angle)
-                and abs(self.spherical) < 0.5):
-            raise InputError(f"need 0 <= astigmatism < 0.5, a finite angle and |spherical| < 0.5; got "
-                             f"{self.astigmatism}, {self.astigmatism_angle}, {self.spherical}")
+        check_psf_parameters(self.shape, self.diffraction_px, self.astigmatism, self.astigmatism_angle, self.spherical)
         if not 0.2 <= self.sigma_scale <= 5.0:
             raise InputError(f"sigma_scale must lie in [0.2, 5], got {self.sigma_scale}")
 

@@ -46,7 +46,7 @@ from ..errors import InputError
 from .psf import (convolve_gaussian, diffraction_pad, full_conv_1d, gaussian_psf_1d, kernel_size_for,
                   power_exponential_psf, psf_kernel, sampled_psf)
 
-__all__ = ["PSFModel", "kurtosis"]
+__all__ = ["PSFModel", "check_psf_parameters", "kurtosis"]
 
 
 def kurtosis(beta: float) -> float:
@@ -55,6 +55,31 @@ def kurtosis(beta: float) -> float:
         return 4.0 / 3.0
     lg = math.lgamma
     return math.exp(lg(6.0 / beta) + lg(2.0 / beta) - 2.0 * lg(4.0 / beta))
+
+
+def check_psf_parameters(shape: str | float, diffraction_px: float, astigmatism: float, astigmatism_angle: float,
+                         spherical: float) -> None:
+    """Raise :class:`~tdfd.errors.InputError` naming the first of a lens PSF's parameters out of range:
+    ``shape`` ``"gaussian"``, ``"pillbox"`` or a finite ``beta >= 1``; a finite diffraction RMS radius
+    ``>= 0`` (px); ``0 <= astigmatism < 0.5`` along a finite angle (rad); ``|spherical| < 0.5``.
+
+    Example:
+        >>> check_psf_parameters(5.0, 0.5, 0.1, 0.3, -0.2)
+        >>> check_psf_parameters("gaussian", 0.0, 0.5, 0.0, 0.0)
+        Traceback (most recent call last):
+        ...
+        tdfd.errors.InputError: need 0 <= astigmatism < 0.5, a finite angle and |spherical| < 0.5; got 0.5, 0.0, 0.0
+    """
+    if isinstance(shape, str):
+        if shape not in ("gaussian", "pillbox"):
+            raise InputError(f"unknown PSF shape {shape!r}; use 'gaussian', 'pillbox' or a beta >= 1")
+    elif not (float(shape) >= 1.0 and math.isfinite(float(shape))):
+        raise InputError(f"a power-exponential shape needs a finite beta >= 1, got {shape}")
+    if not (0.0 <= diffraction_px < math.inf):
+        raise InputError(f"the diffraction RMS radius must be finite and >= 0 px, got {diffraction_px}")
+    if not (0.0 <= astigmatism < 0.5 and math.isfinite(astigmatism_angle) and abs(spherical) < 0.5):
+        raise InputError(f"need 0 <= astigmatism < 0.5, a finite angle and |spherical| < 0.5; got "
+                         f"{astigmatism}, {astigmatism_angle}, {spherical}")
 
 
 @dataclass(frozen=True)
@@ -76,13 +101,8 @@ class PSFModel:
     spherical: float = 0.0
 
     def __post_init__(self) -> None:
-        if isinstance(self.shape, str):
-            if self.shape not in ("gaussian", "pillbox"):
-                raise InputError(f"PSF shape must be 'gaussian', 'pillbox' or a beta >= 1, got {self.shape!r}")
-        elif not (float(self.shape) >= 1.0 and math.isfinite(float(self.shape))):
-            raise InputError(f"power-exponential beta must be finite and >= 1, got {self.shape}")
-        if not (0 <= self.diffraction_sigma_px and 0 <= self.astigmatism < 0.5 and abs(self.spherical) < 0.5):
-            raise InputError("need diffraction_sigma_px >= 0, 0 <= astigmatism < 0.5, |spherical| < 0.5")
+        check_psf_parameters(self.shape, self.diffraction_sigma_px, self.astigmatism, self.astigmatism_angle,
+                             self.spherical)
 
     @property
     def plain(self) -> bool:
