@@ -8,10 +8,10 @@ Run from the repository root::
 Every sample of the benchmarks has its own lens (``data_synth``'s draw: a shape between Gaussian
 and disk, diffraction, astigmatism, spherical aberration). Here each is calibrated as a user
 calibrates theirs (:func:`training.calibrated_lens.sweep_fit`): a focus sweep of a chart
-(``--sweep-chart``, default dead leaves: detail at every scale) at 0.5 m through that lens (:class:`tdfd.capture.sim.SimulatedRig`: 256x256, 12-bit, shot
-and read noise), 7 powers over +-3 px of blur, ``--frames-per-power`` frames at each averaged,
-fitted by :func:`tdfd.calibration.psf_model.psf_model_from_frames` on its 2 central 128-px
-regions. Then four likelihood stages (:mod:`tdfd.dfd.likelihood_stage`) run on the sample's pair
+(``--sweep-chart``, default dead leaves: detail at every scale) at 0.5 m through that lens
+(:class:`tdfd.capture.sim.SimulatedRig`: 256x256, 12-bit, shot and read noise), 7 powers over
++-3 px of blur, ``--frames-per-power`` frames at each averaged, fitted by
+:func:`tdfd.calibration.psf_model.psf_model_from_frames` on its 2 central 128-px regions. Then four likelihood stages (:mod:`tdfd.dfd.likelihood_stage`) run on the sample's pair
 after the shipped model, on the same model map:
 
 - ``profiled``: the stage as shipped, the PSF profiled over every shape, with and without the
@@ -49,7 +49,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from benchmarks.bench_bound import MEDIAN_ABS, depth_variances, median_at_bound, plane_fisher, psf_model, psf_prior_variance
+from benchmarks.bench_bound import (MEDIAN_ABS, depth_variances, median_at_bound, plane_fisher, psf_model,
+                                    psf_prior_variance)
 from benchmarks.bench_likelihood_stage import paired_bootstrap
 from benchmarks.bench_plane_oracle import CLEAN_WORLD
 from benchmarks.bench_refinement import BENCH_SEED, bench_grids
@@ -209,13 +210,17 @@ def plane_table(rows: list[dict]) -> tuple[list[list[object]], list[str]]:
     return table, lines
 
 
+def tile_errors(rows: list[dict], estimator: str) -> torch.Tensor:
+    """Every row's tiles' absolute relative depth error of ``estimator`` (``model`` or a stage), in one tensor."""
+    return torch.cat([(r["true_q"] / r[f"{estimator}_q"] - 1).abs() for r in rows])
+
+
 def bound_line(rows: list[dict]) -> str:
     """The planes' interior tiles at the Cramér-Rao bound (PSF shared by the image): the median an
     unbiased estimator reaching it on every tile would score (:func:`benchmarks.bench_bound.median_at_bound`),
     and each estimator's per-tile median over it."""
     at_bound = median_at_bound(torch.cat([r["bound"] for r in rows]))
-    ratios = ", ".join(f"{k} {float(torch.cat([(r['true_q'] / r[f'{k}_q'] - 1).abs() for r in rows]).median()) / at_bound:.2f}x"
-                       for k in ("model", *STAGES))
+    ratios = ", ".join(f"{k} {float(tile_errors(rows, k).median()) / at_bound:.2f}x" for k in ("model", *STAGES))
     return (f"At the bound (PSF shared by the image, the same interior tiles, `bench_bound`'s model): "
             f"{_pct(at_bound)} per tile; each estimator's median per tile over it: {ratios}.")
 
@@ -230,7 +235,7 @@ def family_table(rows: list[dict]) -> list[list[object]]:
         bound = MEDIAN_ABS * float(torch.cat([r["bound"] for r in sel]).median())
         cells = []
         for k in ("model", *STAGES):
-            e = float(torch.cat([(r["true_q"] / r[f"{k}_q"] - 1).abs() for r in sel]).median())
+            e = float(tile_errors(sel, k).median())
             cells.append(f"{_pct(e)} ({e / bound:.1f}x)")
         table.append([name, len(sel), _pct(bound), *cells])
     return table
@@ -359,7 +364,8 @@ def main(argv: list[str] | None = None) -> int:
     print(body)
     if not args.no_write:
         cmd = (f".venv/bin/python -m benchmarks.bench_psf_model --samples {args.samples} --world {world[0]} "
-               f"--structure {args.structure} --frames-per-power {args.frames_per_power} --sweep-chart {args.sweep_chart}"
+               f"--structure {args.structure} --frames-per-power {args.frames_per_power} "
+               f"--sweep-chart {args.sweep_chart}"
                + (f" --scales {args.scales}" if args.scales else "")
                + (f" --calibrated-scales {args.calibrated_scales}" if args.calibrated_scales else ""))
         update_section("psf_model", "The lens's PSF measured from a focus sweep, the likelihood stage told it "

@@ -17,7 +17,6 @@ both calibrate here, with seeds of their own.
 Example:
     >>> from tdfd.camera import Camera
     >>> from tdfd.optics.aberrated_psf import PSFModel
-from tdfd.textures import TEXTURE_FAMILIES
     >>> fit = sweep_fit(Camera.preset("reference"), PSFModel(2.0), seed=1, frames_per_power=1)  # doctest: +SKIP
 """
 
@@ -34,8 +33,8 @@ from tdfd.errors import InputError
 from tdfd.optics.aberrated_psf import PSFModel
 from tdfd.textures import TEXTURE_FAMILIES
 
-__all__ = ["SWEEP_POWERS", "SWEEP_HALF_SPAN_PX", "SWEEP_DISTANCE_M", "SWEEP_SIZE", "SWEEP_REGIONS", "SWEEP_CHART", "SWEEP_CHARTS",
-           "sweep_fit"]
+__all__ = ["SWEEP_POWERS", "SWEEP_HALF_SPAN_PX", "SWEEP_DISTANCE_M", "SWEEP_SIZE", "SWEEP_REGIONS", "SWEEP_CHART",
+           "SWEEP_CHARTS", "sweep_fit"]
 
 #: the sweep: powers, half-span in px of blur, chart distance (m), frame size (px), 128-px regions fitted
 SWEEP_POWERS = 7
