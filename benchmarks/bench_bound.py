@@ -79,6 +79,7 @@ from data_synth.psf import PSFModel, diffraction_sigma_px
 from data_synth.psf import sample_psf_model as psf_model  # re-exported: the benchmarks' name
 from tdfd import Camera
 from tdfd.dfd import FourierRatioDFD
+from tdfd.dfd.inverse_variance import MEDIAN_ABS_NORMAL
 from tdfd.errors import InputError
 from tdfd.model import DFDModel
 from tdfd.optics.thin_lens import camera_sigmas
@@ -89,7 +90,7 @@ from training.losses import depth_relative_error
 __all__ = ["plane_information", "plane_fisher", "tile_fisher", "otf_jacobian", "psf_prior_variance", "depth_variances", "median_at_bound", "otf", "ring_band", "sample_sensor", "main"]
 
 TILE, STRIDE = 64, 32
-MEDIAN_ABS = 0.6745  # median |x| of a standard normal x
+MEDIAN_ABS = MEDIAN_ABS_NORMAL  # median |x| of a standard normal x
 #: The lens PSF's parameters that ``data_synth`` draws afresh for every sample
 #: (:func:`data_synth.params.draw_psf`) and that no estimator is told: the shape
 #: ``kappa = 1 / beta`` (0 pillbox, 0.5 Gaussian), the diffraction variance ``sigma_d^2``

@@ -3,7 +3,8 @@ r"""The lens's whole PSF measured from a focus sweep, and the likelihood stage t
 Run from the repository root::
 
     .venv/bin/python -m benchmarks.bench_psf_model [--samples 256] [--world full] [--structure 16]
-        [--frames-per-power 2] [--sweep-chart dead_leaves] [--scales S.json] [--calibrated-scales S.json] [--no-write]
+        [--frames-per-power 2] [--sweep-chart dead_leaves] [--scales S.json] [--calibrated-scales S.json]
+        [--bias-scales S.json] [--no-write]
 
 Every sample of the benchmarks has its own lens (``data_synth``'s draw: a shape between Gaussian
 and disk, diffraction, astigmatism, spherical aberration). Here each is calibrated as a user
@@ -22,7 +23,10 @@ after the shipped model, on the same model map:
   calibrated the same way (``models/reference.likelihood-calibrated.json``,
   ``training.fit_likelihood_stage --calibrated-psf``: ``tdfd depth --psf-model CAM.json``);
 - ``told``: the sample's true PSF as its one hypothesis, with those scales (the oracle a
-  calibration aims at).
+  calibration aims at);
+- ``calibrated_bias`` (with ``--bias-scales``): the ``calibrated`` stage's very fits fused again
+  with scales fitted with ``--shared-bias`` (the model's bias, measured against the fit on the
+  whole tile grid, removed first; :func:`benchmarks.stage_rows.refused`).
 
 Reports the calibration's error (the kernels at +-1, +-2, +-3 px of blur against the true
 lens's without its diffraction, which the sweep cannot see: relative L2; astigmatism and
@@ -58,6 +62,7 @@ from benchmarks.bench_structure import STRUCTURE_SEED
 from benchmarks.bench_tile_oracle import interior_origins
 from benchmarks.depth_edges import edge_tiles
 from benchmarks.report import ROOT, comma_choices, machine, markdown_table, repo_path, update_section
+from benchmarks.stage_rows import refused
 from benchmarks.stage_uncertainty import decile_summary, relative_inverse_depth_error
 from data_synth.params import SynthConfig
 from tdfd.calibration.psf_model import PsfModelFit
@@ -71,13 +76,21 @@ from training.calibrated_lens import (SWEEP_CHART, SWEEP_CHARTS, SWEEP_DISTANCE_
 from training.data import STRUCTURE_LAYOUTS, textured_scenes
 from training.fit_likelihood_stage import black_levels
 
-__all__ = ["kernel_error", "STAGES", "main"]
+__all__ = ["kernel_error", "STAGES", "BIAS_STAGE", "stages_of", "main"]
 
 #: the sweeps' seeds (``training.calibrated_lens.sweep_fit``): planes at +i, structure scenes above
 SWEEP_SEED = 7_000_000
 
 #: the stages compared, in the tables' order
 STAGES = ("profiled", "calibrated_shipped_scales", "calibrated", "told")
+#: ``--bias-scales``: the ``calibrated`` stage's fits fused again with scales that remove the
+#: model's bias first (:func:`benchmarks.stage_rows.refused`)
+BIAS_STAGE = "calibrated_bias"
+
+
+def stages_of(rows: list[dict]) -> tuple[str, ...]:
+    """The stages ``rows`` hold: :data:`STAGES`, and :data:`BIAS_STAGE` where it was run."""
+    return STAGES + ((BIAS_STAGE,) if rows and f"{BIAS_STAGE}_conf" in rows[0] else ())
 #: the blurs (px) at which the kernels are compared
 KERNEL_SIGMAS = (-3.0, -2.0, -1.0, 1.0, 2.0, 3.0)
 
@@ -112,9 +125,11 @@ def _stages(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], 
 
 
 def plane_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], samples: int, world: str,
-               frames_per_power: int, chart: str = SWEEP_CHART) -> list[dict]:
+               frames_per_power: int, chart: str = SWEEP_CHART, bias_scales: LikelihoodScales | None = None
+               ) -> list[dict]:
     """Per plane (0.3-1.0 m) of the refinement benchmark's first ``samples``: its interior tiles'
-    true, model and stages' inverse depths and confidences, and its lens's calibration."""
+    true, model and stages' inverse depths and confidences, and its lens's calibration; with
+    ``bias_scales`` also :data:`BIAS_STAGE`'s."""
     over = CLEAN_WORLD if world == "clean" else {}
     grids, ds = bench_grids(model, samples, 256, over, return_sharp=True)
     true, ref, conf = (grids[k] for k in ("true", "refined", "confidence"))
@@ -142,6 +157,10 @@ def plane_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales
                       conf[i][None, None], black_level=black_levels([p])[0])
             row[f"{name}_q"] = 1.0 / r.depth[0, 0, inner, inner].flatten().double()
             row[f"{name}_conf"] = r.confidence[0, 0, inner, inner].flatten().double()
+            if name == "calibrated" and bias_scales is not None:
+                d, c = refused(stage, r, ref[i][None, None], conf[i][None, None], bias_scales)
+                row[f"{BIAS_STAGE}_q"] = 1.0 / d[0, 0, inner, inner].flatten().double()
+                row[f"{BIAS_STAGE}_conf"] = c[0, 0, inner, inner].flatten().double()
             # the fit alone, for A/Bs of the fusion on the same fits (benchmarks.stage_rows.refused's inputs)
             row[f"{name}_fit_q"] = 1.0 / r.depth_fit[0, 0, inner, inner].flatten().double()
             row[f"{name}_fit_sigma_raw"] = r.sigma_fit_raw[0, 0, inner, inner].flatten()
@@ -153,9 +172,11 @@ def plane_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales
 
 
 def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], scenes: int,
-                   frames_per_power: int, chart: str = SWEEP_CHART) -> list[dict]:
+                   frames_per_power: int, chart: str = SWEEP_CHART, bias_scales: LikelihoodScales | None = None
+                   ) -> list[dict]:
     """Per 480x640 structure scene (the first ``scenes`` per layout): its tiles in the working
-    range away from occlusion edges, true, model and each stage's depth and confidence."""
+    range away from occlusion edges, true, model and each stage's depth and confidence (with
+    ``bias_scales`` :data:`BIAS_STAGE`'s too)."""
     near, far = model.camera.depth_range_m
     out = []
     for layout in STRUCTURE_LAYOUTS:
@@ -176,6 +197,9 @@ def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodSc
                 r = stage(i1, i2, depth, conf, black_level=black_levels(b["params"])[0])
                 row[name] = r.depth[0, 0][keep].double()
                 row[f"{name}_conf"] = r.confidence[0, 0][keep].double()
+                if name == "calibrated" and bias_scales is not None:
+                    d, c = refused(stage, r, depth, conf, bias_scales)
+                    row[BIAS_STAGE], row[f"{BIAS_STAGE}_conf"] = d[0, 0][keep].double(), c[0, 0][keep].double()
             out.append(row)
     return out
 
@@ -197,12 +221,13 @@ def _pct(x: float) -> str:
 
 def plane_table(rows: list[dict]) -> tuple[list[list[object]], list[str]]:
     med = statistics.median
-    errors = {k: [(r["true_q"] / r[f"{k}_q"] - 1.0).tolist() for r in rows] for k in ("model", *STAGES)}
+    errors = {k: [(r["true_q"] / r[f"{k}_q"] - 1.0).tolist() for r in rows] for k in ("model", *stages_of(rows))}
     table = [[k, _pct(med(abs(x) for pl in v for x in pl)), _pct(med(abs(med(pl)) for pl in v))]
              for k, v in errors.items()]
     lines = []
-    for a, b in (("calibrated", "profiled"), ("calibrated", "model"), ("calibrated", "calibrated_shipped_scales"),
-                 ("told", "calibrated")):
+    pairs = [("calibrated", "profiled"), ("calibrated", "model"), ("calibrated", "calibrated_shipped_scales"),
+             ("told", "calibrated")] + ([(BIAS_STAGE, "calibrated")] if BIAS_STAGE in errors else [])
+    for a, b in pairs:
         mt, lo, hi = paired_bootstrap(errors[a], errors[b])
         mp, plo, phi = paired_bootstrap([[med(pl)] for pl in errors[a]], [[med(pl)] for pl in errors[b]])
         lines.append(f"- {a} - {b}: per tile {100 * mt:+.2f} points (95 %: {100 * lo:+.2f} .. {100 * hi:+.2f}), "
@@ -220,7 +245,7 @@ def bound_line(rows: list[dict]) -> str:
     unbiased estimator reaching it on every tile would score (:func:`benchmarks.bench_bound.median_at_bound`),
     and each estimator's per-tile median over it."""
     at_bound = median_at_bound(torch.cat([r["bound"] for r in rows]))
-    ratios = ", ".join(f"{k} {float(tile_errors(rows, k).median()) / at_bound:.2f}x" for k in ("model", *STAGES))
+    ratios = ", ".join(f"{k} {float(tile_errors(rows, k).median()) / at_bound:.2f}x" for k in ("model", *stages_of(rows)))
     return (f"At the bound (PSF shared by the image, the same interior tiles, `bench_bound`'s model): "
             f"{_pct(at_bound)} per tile; each estimator's median per tile over it: {ratios}.")
 
@@ -234,7 +259,7 @@ def family_table(rows: list[dict]) -> list[list[object]]:
         sel = [r for r in rows if r["family"] == name]
         bound = MEDIAN_ABS * float(torch.cat([r["bound"] for r in sel]).median())
         cells = []
-        for k in ("model", *STAGES):
+        for k in ("model", *stages_of(rows)):
             e = float(tile_errors(sel, k).median())
             cells.append(f"{_pct(e)} ({e / bound:.1f}x)")
         table.append([name, len(sel), _pct(bound), *cells])
@@ -263,7 +288,7 @@ def structure_table(rows: list[dict]) -> list[list[object]]:
             continue
         true = torch.cat([r["true"] for r in sel])
         cells = []
-        for k in ("model", *STAGES):
+        for k in ("model", *stages_of(rows)):
             est, conf = torch.cat([r[k] for r in sel]), torch.cat([r[f"{k}_conf"] for r in sel])
             e = (est / true - 1).abs()
             c = conf >= 0.5
@@ -277,7 +302,7 @@ def confidence_table(rows: list[dict], confidence_scale: float) -> list[list[obj
     scene = torch.cat([torch.full((r["true_q"].numel(),), r["index"]) for r in rows])
     true = torch.cat([r["true_q"] for r in rows])
     out = []
-    for k in ("model", *STAGES):
+    for k in ("model", *stages_of(rows)):
         q, conf = torch.cat([r[f"{k}_q"] for r in rows]), torch.cat([r[f"{k}_conf"] for r in rows])
         out.append([k, int(q.numel())] + decile_summary(conf, relative_inverse_depth_error(1.0 / q, 1.0 / true),
                                                         scene, confidence_scale))
@@ -297,6 +322,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--calibrated-scales", default="",
                    help="the sigma factors fitted with each lens calibrated, for the stages told a PSF (default: "
                         "MODEL.likelihood-calibrated.json)")
+    p.add_argument("--bias-scales", default="",
+                   help="also fuse the calibrated stage's fits with these scales (fitted with --shared-bias): "
+                        f"stage {BIAS_STAGE}")
     p.add_argument("--no-write", action="store_true", help="print only; leave docs/ alone")
     p.add_argument("--rows", default="", help="also save every plane's and scene's figures (torch.save)")
     args = p.parse_args(argv)
@@ -310,10 +338,13 @@ def main(argv: list[str] | None = None) -> int:
     scales_paths = (args.scales or f"{args.model}.likelihood.json",
                     args.calibrated_scales or f"{args.model}.likelihood-calibrated.json")
     scales = (LikelihoodScales.load(scales_paths[0]), LikelihoodScales.load(scales_paths[1]))
+    bias_scales = LikelihoodScales.load(args.bias_scales) if args.bias_scales else None
+    if bias_scales is not None and not bias_scales.shared_bias:
+        p.error(f"--bias-scales {args.bias_scales} does not remove the model's bias (fitted without --shared-bias)")
     shown = [repo_path(x) for x in scales_paths]
     t0 = time.perf_counter()
-    rows = plane_rows(model, scales, args.samples, world[0], args.frames_per_power, args.sweep_chart)
-    srows = (structure_rows(model, scales, args.structure, args.frames_per_power, args.sweep_chart)
+    rows = plane_rows(model, scales, args.samples, world[0], args.frames_per_power, args.sweep_chart, bias_scales)
+    srows = (structure_rows(model, scales, args.structure, args.frames_per_power, args.sweep_chart, bias_scales)
              if args.structure else [])
     wall = time.perf_counter() - t0
     if args.rows:
@@ -327,7 +358,10 @@ def main(argv: list[str] | None = None) -> int:
         f"({SWEEP_SIZE[0]}x{SWEEP_SIZE[1]}, 12-bit, noise on; {SWEEP_REGIONS} regions of 128 px). The stages' scales: "
         f"`{shown[0]}` (`profiled`, `calibrated_shipped_scales`: the shipped stage's, fitted with the PSF "
         f"profiled), `{shown[1]}` (`calibrated`, `told`: fitted with each training scene's lens calibrated "
-        f"from its own sweep, `training.fit_likelihood_stage --calibrated-psf`).",
+        f"from its own sweep, `training.fit_likelihood_stage --calibrated-psf`)"
+        + (f"; `{BIAS_STAGE}`: the `calibrated` stage's very fits fused again with `{repo_path(args.bias_scales)}`, "
+           f"the model's bias within {bias_scales.bias_radius} tiles removed first (fitted with `--shared-bias`)"
+           if bias_scales is not None else "") + ".",
         "",
         "The PSF's error over the lenses (median, quartiles): the kernels' largest relative L2 distance at "
         f"{', '.join(f'{s:+.0f}' for s in KERNEL_SIGMAS)} px of blur, both without diffraction (which cancels "
@@ -345,7 +379,7 @@ def main(argv: list[str] | None = None) -> int:
         "Per texture family (the plane's first texture), median error per tile and its ratio to the family's "
         "per-tile bound (PSF shared by the image; issue 19 asks <= 2x):",
         "",
-        markdown_table(["family", "planes", "per tile: bound", "model", *STAGES], family_table(rows)),
+        markdown_table(["family", "planes", "per tile: bound", "model", *stages_of(rows)], family_table(rows)),
         "",
         "Paired bootstrap over planes (1000 resamples, seed 0):",
         "",
@@ -359,7 +393,8 @@ def main(argv: list[str] | None = None) -> int:
         *(["", f"The structure benchmark's first {args.structure} scenes per layout (480x640, seed {STRUCTURE_SEED}, "
                "the whole world; tiles in the working range away from occlusion edges), each scene's lens calibrated "
                "as above. Each cell: median error; share at confidence >= 0.5, median error there.", "",
-           markdown_table(["layout", "scenes", "tiles", "model", *STAGES], structure_table(srows))] if srows else []),
+           markdown_table(["layout", "scenes", "tiles", "model", *stages_of(srows)],
+                          structure_table(srows))] if srows else []),
     ])
     print(body)
     if not args.no_write:
@@ -367,7 +402,8 @@ def main(argv: list[str] | None = None) -> int:
                f"--structure {args.structure} --frames-per-power {args.frames_per_power} "
                f"--sweep-chart {args.sweep_chart}"
                + (f" --scales {args.scales}" if args.scales else "")
-               + (f" --calibrated-scales {args.calibrated_scales}" if args.calibrated_scales else ""))
+               + (f" --calibrated-scales {args.calibrated_scales}" if args.calibrated_scales else "")
+               + (f" --bias-scales {args.bias_scales}" if args.bias_scales else ""))
         update_section("psf_model", "The lens's PSF measured from a focus sweep, the likelihood stage told it "
                                     "(issue 19)", body, cmd)
     return 0

@@ -7,7 +7,8 @@ import math
 import pytest
 import torch
 
-from benchmarks.bench_psf_model import STAGES, bound_line, family_table, kernel_error, plane_table
+from benchmarks.bench_psf_model import (BIAS_STAGE, STAGES, bound_line, family_table, kernel_error, plane_table,
+                                        stages_of, structure_table)
 from tdfd.errors import InputError
 from tdfd.dfd.psf_hypotheses import PsfHypothesis
 from tdfd.optics.aberrated_psf import PSFModel
@@ -38,6 +39,28 @@ def test_the_plane_table_scores_every_stage_against_the_truth():
     assert cells["model"] == f"{100 * abs(1 / 1.04 - 1):.2f} %" and cells["told"] == "0.00 %"
     assert len(lines) == 4 and lines[0].startswith("- calibrated - profiled: per tile -0.9")
     assert lines[2].startswith("- calibrated - calibrated_shipped_scales: per tile -0.4")
+
+
+def test_the_bias_stage_is_scored_beside_the_others_where_it_was_run():
+    true = torch.full((25,), 2.0, dtype=torch.float64)
+    rows = []
+    for i in range(4):
+        row = {"index": i, "family": "dots", "true_q": true, "model_q": true * 1.04,
+               "bound": torch.full((25,), 0.01, dtype=torch.float64)}
+        for k, f in zip((*STAGES, BIAS_STAGE), (1.02, 1.015, 1.01, 1.0, 1.005)):
+            row[f"{k}_q"], row[f"{k}_conf"] = true * f, torch.full((25,), 0.5, dtype=torch.float64)
+        rows.append(row)
+    assert stages_of(rows) == (*STAGES, BIAS_STAGE) and stages_of([{"calibrated_q": true}]) == STAGES
+    table, lines = plane_table(rows)
+    assert [r[0] for r in table] == ["model", *STAGES, BIAS_STAGE]
+    assert table[-1][1] == f"{100 * abs(1 / 1.005 - 1):.2f} %"
+    assert len(lines) == 5 and lines[4].startswith(f"- {BIAS_STAGE} - calibrated: per tile -0.49 points")
+    assert len(family_table(rows)[0]) == 3 + 1 + len(STAGES) + 1
+    scenes = [{"layout": "slanted", "scene": 0, "true": true, "model": true, "model_conf": true,
+               **{k: true * 1.01 for k in (*STAGES, BIAS_STAGE)},
+               **{f"{k}_conf": torch.full((25,), 0.7, dtype=torch.float64) for k in (*STAGES, BIAS_STAGE)}}]
+    (slanted,) = structure_table(scenes)
+    assert len(slanted) == 3 + 1 + len(STAGES) + 1 and slanted[-1].startswith("1.00 %; 100 % at >= 0.5")
 
 
 def test_the_family_table_divides_each_familys_error_by_its_own_bound():

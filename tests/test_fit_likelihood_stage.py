@@ -106,6 +106,41 @@ def test_the_fit_writes_a_scales_file_with_its_provenance(tmp_path, monkeypatch)
         main(["--model", str(stem), "--planes", "1", "--calibrated-psf", "-1"])
 
 
+def test_saved_errors_refit_to_the_scales_a_full_run_gives(tmp_path):
+    import shutil
+    from pathlib import Path
+
+    stem = tmp_path / "m"
+    for ext in (".safetensors", ".json"):
+        shutil.copy(Path("models") / f"reference{ext}", f"{stem}{ext}")
+    saved = tmp_path / "errors.pt"
+    base = ["--model", str(stem), "--planes", "2", "--scenes", "0", "--fused-bins", "0"]
+    assert main(base + ["--shared-bias", "--out", str(tmp_path / "full.json"), "--save-errors", str(saved)]) == 0
+    assert main(base + ["--shared-bias", "--out", str(tmp_path / "refit.json"), "--errors", str(saved)]) == 0
+    full, refit = LikelihoodScales.load(tmp_path / "full.json"), LikelihoodScales.load(tmp_path / "refit.json")
+    assert refit.fit == full.fit and refit.model == full.model and refit.shared_bias
+    assert refit.provenance["tiles"] == full.provenance["tiles"]
+    assert refit.provenance["median_abs_error"] == full.provenance["median_abs_error"]
+    assert refit.provenance["command"].endswith(f"--errors {saved}")
+    assert refit.provenance["errors_collection_wall_s"] > 0
+    # the variant without the bias removal, on the same tiles: the fit's factors do not depend on it
+    assert main(base + ["--out", str(tmp_path / "plain.json"), "--errors", str(saved)]) == 0
+    assert LikelihoodScales.load(tmp_path / "plain.json").fit == full.fit
+    # an errors file collected for other scenes or another PSF is refused, naming the setting
+    with pytest.raises(ValueError, match="planes: file 2, asked 3"):
+        main(["--model", str(stem), "--planes", "3", "--scenes", "0", "--errors", str(saved)])
+    with pytest.raises(ValueError, match="calibrated_psf: file 0, asked 2"):
+        main(base + ["--calibrated-psf", "2", "--errors", str(saved)])
+    data = torch.load(saved, weights_only=True)
+    del data["errors"]["slope"]
+    torch.save(data, tmp_path / "short.pt")
+    with pytest.raises(ValueError, match=r"lacks the columns \['slope'\]"):
+        main(base + ["--errors", str(tmp_path / "short.pt")])
+    torch.save({"fit_error": torch.zeros(3)}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="not an errors file"):
+        main(base + ["--errors", str(tmp_path / "other.pt")])
+
+
 def _correlated_errors(images: int = 200, tiles: int = 40, seed: int = 5) -> dict[str, torch.Tensor]:
     """Fit and model errors that share half their variance, each at its stated sigma: the
     inverse-variance fusion, taking them for independent, understates its sigma."""

@@ -36,6 +36,11 @@ measures it (:func:`training.calibrated_lens.sweep_fit`, FRAMES frames per power
 profiled: the scales of ``tdfd depth --psf-model`` (the shipped
 ``models/reference.likelihood-calibrated.json``; the file's ``psf`` is then ``"measured"``).
 
+``--save-errors PATH`` also saves the collected tiles (the run's long part: each scene's stage,
+and with ``--calibrated-psf`` its sweep); ``--errors PATH`` fits on them instead of collecting, so
+the ``--shared-bias`` variant of a run costs seconds (:func:`save_stage_errors`,
+:func:`load_stage_errors`).
+
 Writes ``<model>.likelihood.json`` (:class:`tdfd.dfd.inverse_variance.LikelihoodScales`, with the
 command, the scene counts, the tile counts, the medians and the in-sample decile ratios of the
 fused scale before and after its map as provenance).
@@ -65,7 +70,8 @@ from .calibrated_lens import SWEEP_CHART, SWEEP_CHARTS, sweep_fit
 
 __all__ = ["SLOPE_EDGES", "MIN_BAND_TILES", "BIAS_ITERATIONS", "BIAS_RADIUS", "FUSED_BINS", "FUSED_MIN_TILES_PER_BIN",
            "CALIBRATION_SWEEP_SEED", "black_levels", "collect_stage_errors", "image_biases", "model_error_without_bias",
-           "fit_scales", "fused_errors", "fit_fused_scale_map", "decile_ratios", "main"]
+           "fit_scales", "fused_errors", "fit_fused_scale_map", "decile_ratios", "ERROR_COLUMNS", "save_stage_errors",
+           "load_stage_errors", "main"]
 
 #: the inner edges of the slope bands (:func:`tdfd.dfd.inverse_variance.tile_slope`)
 SLOPE_EDGES = (0.01, 0.03)
@@ -228,6 +234,42 @@ def decile_ratios(error: torch.Tensor, scale: torch.Tensor, bins: int = 10) -> l
             for part in torch.tensor_split(order, bins)]
 
 
+#: the columns :func:`collect_stage_errors` returns and an errors file must hold
+ERROR_COLUMNS = ("fit_error", "fit_sigma", "model_error", "model_sigma", "slope", "set", "image", "row", "col")
+
+
+def save_stage_errors(path: str | Path, errors: dict[str, torch.Tensor], settings: dict, wall_s: float = 0.0) -> None:
+    """Save :func:`collect_stage_errors`'s columns with the ``settings`` that collected them
+    (model, planes, scenes, calibrated_psf, sweep_chart) and the collection's ``wall_s``, for
+    :func:`load_stage_errors`."""
+    torch.save({"settings": dict(settings), "wall_s": float(wall_s),
+                "errors": {k: errors[k].contiguous() for k in ERROR_COLUMNS}}, path)
+
+
+def load_stage_errors(path: str | Path, settings: dict) -> tuple[dict[str, torch.Tensor], float]:
+    """The columns :func:`save_stage_errors` wrote (loaded with ``weights_only=True``) and the
+    seconds their collection took.
+
+    Raises:
+        ValueError: the file lacks a column, its columns differ in length, or a setting in
+            ``settings`` differs from the one the file was collected with (named)."""
+    data = torch.load(path, weights_only=True)
+    if not isinstance(data, dict) or not isinstance(data.get("settings"), dict) or not isinstance(
+            data.get("errors"), dict):
+        raise ValueError(f"{path}: not an errors file of training.fit_likelihood_stage --save-errors")
+    errors, saved = data["errors"], data["settings"]
+    missing = [k for k in ERROR_COLUMNS if k not in errors]
+    if missing:
+        raise ValueError(f"{path}: the errors file lacks the columns {missing}")
+    lengths = {errors[k].numel() for k in ERROR_COLUMNS}
+    if len(lengths) != 1:
+        raise ValueError(f"{path}: the errors file's columns differ in length ({sorted(lengths)})")
+    differ = [f"{k}: file {saved.get(k)!r}, asked {v!r}" for k, v in settings.items() if saved.get(k) != v]
+    if differ:
+        raise ValueError(f"{path} was collected with other settings ({'; '.join(differ)})")
+    return {k: errors[k] for k in ERROR_COLUMNS}, float(data.get("wall_s", 0.0))
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--model", default="models/reference", help="model path stem (writes STEM.likelihood.json)")
@@ -245,8 +287,14 @@ def main(argv: list[str] | None = None) -> int:
                    help="tell each scene's stage its lens's PSF as a focus sweep with FRAMES frames per power "
                         "measures it (the scales of `tdfd depth --psf-model`; default 0: the PSF profiled)")
     p.add_argument("--sweep-chart", default=SWEEP_CHART, choices=SWEEP_CHARTS,
-                   help=f"with --calibrated-psf, the texture family the sweeps see (default {SWEEP_CHART}; "
-                        "models/reference.likelihood-calibrated.json was fitted with bandlimited)")
+                   help=f"with --calibrated-psf, the texture family the sweeps see (default {SWEEP_CHART})")
+    p.add_argument("--save-errors", default="", metavar="PATH",
+                   help="also save the collected tiles' errors and sigmas (torch file), so that other options "
+                        "(--shared-bias, --bias-radius, --fused-bins) can be fitted on them with --errors")
+    p.add_argument("--errors", default="", metavar="PATH",
+                   help="fit on errors a run with --save-errors collected instead of collecting them (the scenes, "
+                        "PSF and chart are the file's; --planes, --scenes, --calibrated-psf, --sweep-chart must "
+                        "match it)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if (args.planes < 1 or args.scenes < 0 or args.bias_radius < 0 or args.fused_bins == 1 or args.fused_bins < 0
@@ -255,7 +303,14 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     model = DFDModel.load(args.model)
     t0 = time.perf_counter()
-    errors = collect_stage_errors(model, args.planes, args.scenes, args.calibrated_psf, args.sweep_chart)
+    settings = {"model": args.model, "planes": args.planes, "scenes": args.scenes,
+                "calibrated_psf": args.calibrated_psf, "sweep_chart": args.sweep_chart}
+    if args.errors:
+        errors, collection_wall = load_stage_errors(args.errors, settings)
+    else:
+        errors = collect_stage_errors(model, args.planes, args.scenes, args.calibrated_psf, args.sweep_chart)
+        if args.save_errors:
+            save_stage_errors(args.save_errors, errors, settings, time.perf_counter() - t0)
     fitted = fit_scales(errors, remove_bias=args.shared_bias, bias_radius=args.bias_radius or None)
     fused_err, fused_b = fused_errors(errors, fitted)
     bins = min(args.fused_bins, fused_err.numel() // FUSED_MIN_TILES_PER_BIN)
@@ -279,7 +334,8 @@ def main(argv: list[str] | None = None) -> int:
                    + (f" --calibrated-psf {args.calibrated_psf}" if args.calibrated_psf else "")
                    + (f" --sweep-chart {args.sweep_chart}" if args.calibrated_psf and args.sweep_chart != SWEEP_CHART
                       else "")
-                   + (f" --out {args.out}" if args.out else ""),
+                   + (f" --out {args.out}" if args.out else "")
+                   + (f" --errors {args.errors}" if args.errors else ""),
         "planes": args.planes, "scenes_per_layout": args.scenes, "plane_seed": PLANE_SEED,
         "structure_seed": STRUCTURE_SEED,
         "psf": (f"each scene's lens calibrated from a focus sweep of a {args.sweep_chart} chart "
@@ -300,6 +356,8 @@ def main(argv: list[str] | None = None) -> int:
         "fused_bins": bins if bins >= 2 else 0,
         "wall_s": round(wall, 1),
     }
+    if args.errors:
+        provenance["errors_collection_wall_s"] = round(collection_wall, 1)
     path = Path(args.out or f"{args.model}.likelihood.json")
     dataclasses.replace(fitted, provenance=provenance, psf="measured" if args.calibrated_psf else "profiled").save(path)
     logger.info("fit sigma factors %s, model sigma factors %s (slope bands at %s, %s tiles) on %d tiles (%s); fused "
