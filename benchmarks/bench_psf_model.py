@@ -86,13 +86,13 @@ STAGES = ("profiled", "calibrated_shipped_scales", "calibrated", "told")
 #: ``--bias-scales``: the ``calibrated`` stage's fits fused again with scales that remove the
 #: model's bias first (:func:`benchmarks.stage_rows.refused`)
 BIAS_STAGE = "calibrated_bias"
+#: the blurs (px) at which the kernels are compared
+KERNEL_SIGMAS = (-3.0, -2.0, -1.0, 1.0, 2.0, 3.0)
 
 
 def stages_of(rows: list[dict]) -> tuple[str, ...]:
     """The stages ``rows`` hold: :data:`STAGES`, and :data:`BIAS_STAGE` where it was run."""
     return STAGES + ((BIAS_STAGE,) if rows and f"{BIAS_STAGE}_conf" in rows[0] else ())
-#: the blurs (px) at which the kernels are compared
-KERNEL_SIGMAS = (-3.0, -2.0, -1.0, 1.0, 2.0, 3.0)
 
 
 def kernel_error(fitted: PsfHypothesis, lens: PSFModel) -> float:
@@ -245,7 +245,8 @@ def bound_line(rows: list[dict]) -> str:
     unbiased estimator reaching it on every tile would score (:func:`benchmarks.bench_bound.median_at_bound`),
     and each estimator's per-tile median over it."""
     at_bound = median_at_bound(torch.cat([r["bound"] for r in rows]))
-    ratios = ", ".join(f"{k} {float(tile_errors(rows, k).median()) / at_bound:.2f}x" for k in ("model", *stages_of(rows)))
+    ratios = ", ".join(f"{k} {float(tile_errors(rows, k).median()) / at_bound:.2f}x"
+                       for k in ("model", *stages_of(rows)))
     return (f"At the bound (PSF shared by the image, the same interior tiles, `bench_bound`'s model): "
             f"{_pct(at_bound)} per tile; each estimator's median per tile over it: {ratios}.")
 

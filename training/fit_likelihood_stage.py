@@ -86,6 +86,8 @@ BIAS_RADIUS = 3
 FUSED_BINS = 40
 #: the fewest tiles per bin of that map (fewer tiles: fewer bins, and below two bins no map)
 FUSED_MIN_TILES_PER_BIN = 25
+#: the columns :func:`collect_stage_errors` returns and an errors file must hold
+ERROR_COLUMNS = ("fit_error", "fit_sigma", "model_error", "model_sigma", "slope", "set", "image", "row", "col")
 #: ``--calibrated-psf``: the focus sweeps' seeds (the benchmark's are ``benchmarks/bench_psf_model.py``'s)
 CALIBRATION_SWEEP_SEED = 8_000_000
 
@@ -117,8 +119,7 @@ def collect_stage_errors(model: DFDModel, planes: int, scenes: int, calibrated_p
     profiled, as shipped."""
     model.eval()
     near, far = model.camera.depth_range_m
-    out: dict[str, list[torch.Tensor]] = {k: [] for k in ("fit_error", "fit_sigma", "model_error", "model_sigma",
-                                                          "slope", "set", "image", "row", "col")}
+    out: dict[str, list[torch.Tensor]] = {k: [] for k in ERROR_COLUMNS}
     profiled = LikelihoodStage.for_model(model)  # raw sigmas: the factors are what this fits
     for k, (name, ds, count, _) in enumerate(calibration_scene_sets(model, planes, scenes)):
         for i in tqdm(range(count), desc=f"likelihood stage: {name}", mininterval=10.0):
@@ -232,10 +233,6 @@ def decile_ratios(error: torch.Tensor, scale: torch.Tensor, bins: int = 10) -> l
     order = torch.argsort(scale, descending=True, stable=True)
     return [float(error[part].abs().median()) / laplace_mixture_median(scale[part])
             for part in torch.tensor_split(order, bins)]
-
-
-#: the columns :func:`collect_stage_errors` returns and an errors file must hold
-ERROR_COLUMNS = ("fit_error", "fit_sigma", "model_error", "model_sigma", "slope", "set", "image", "row", "col")
 
 
 def save_stage_errors(path: str | Path, errors: dict[str, torch.Tensor], settings: dict, wall_s: float = 0.0) -> None:
