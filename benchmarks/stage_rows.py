@@ -1,7 +1,7 @@
 """The likelihood stage's rows on the structure benchmark's scenes, and its fits fused again with other scales.
 
 Pieces of ``benchmarks/bench_likelihood_stage.py`` (section ``likelihood_stage``):
-:func:`refused` fuses one image's fits again with another
+:func:`refused` (and :func:`refuse`, from the fits' maps) fuses one image's fits again with another
 :class:`~tdfd.dfd.inverse_variance.LikelihoodScales` (an A/B of the fusion on the very same
 fits, from the fit's own sigma the stage keeps, ``sigma_fit_raw``); :func:`structure_rows` runs
 the stage on the structure benchmark's scenes and keeps every tile in the working range;
@@ -22,25 +22,37 @@ from tdfd.model import DFDModel
 from training.data import STRUCTURE_LAYOUTS, textured_scenes
 from training.fit_likelihood_stage import black_levels
 
-__all__ = ["refused", "structure_rows", "structure_table"]
+__all__ = ["refuse", "refused", "structure_rows", "structure_table"]
+
+
+def refuse(fitted: torch.Tensor, depth_fit: torch.Tensor, sigma_fit_raw: torch.Tensor, slope: torch.Tensor,
+           depth: torch.Tensor, confidence: torch.Tensor, confidence_scale: float, scales: LikelihoodScales
+           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """One image's likelihood fits fused with the model's map by ``scales``, from the stage's
+    result fields on its ``(h, w)`` tile grid (``fitted``, ``depth_fit``, ``sigma_fit_raw``,
+    ``slope``; :class:`~tdfd.dfd.likelihood_stage.LikelihoodStageResult`) and the model's map
+    ``depth``, ``confidence`` ``(h, w)``: the fused depth and confidence maps ``(h, w)``, as the
+    stage gives them with those scales (the fits do not depend on the scales)."""
+    d, c = depth.clone(), confidence.clone()
+    q_fit = 1.0 / depth_fit[fitted].double()
+    ii, jj = fitted.nonzero(as_tuple=True)
+    q, conf, bias, _ = fuse_with_fit(1.0 / depth[fitted].double(),
+                                     model_sigma(confidence[fitted].double(), confidence_scale), q_fit,
+                                     sigma_fit_raw[fitted] * q_fit, slope[fitted].double(), scales,
+                                     confidence_scale, ii, jj, tuple(fitted.shape))
+    d = (d.double() * torch.exp(bias)).to(depth.dtype)
+    d[fitted], c[fitted] = (1.0 / q).to(d.dtype), conf.to(c.dtype)
+    return d, c
 
 
 def refused(stage: LikelihoodStage, r: LikelihoodStageResult, depth: torch.Tensor, confidence: torch.Tensor,
             scales: LikelihoodScales) -> tuple[torch.Tensor, torch.Tensor]:
     """The stage's result for one image ``(1, 1, h, w)`` fused again with other ``scales`` (the
-    fit's own sigma, ``r.sigma_fit_raw``): the fused depth and confidence maps, for an A/B of the
-    fusion on the same fits."""
-    d, c = depth.clone(), confidence.clone()
-    m = r.fitted[0, 0]
-    q_fit = 1.0 / r.depth_fit[0, 0][m].double()
-    ii, jj = m.nonzero(as_tuple=True)
-    q, conf, bias, _ = fuse_with_fit(1.0 / depth[0, 0][m].double(),
-                                     model_sigma(confidence[0, 0][m].double(), stage.confidence_scale), q_fit,
-                                     r.sigma_fit_raw[0, 0][m] * q_fit, r.slope[0, 0][m].double(), scales,
-                                     stage.confidence_scale, ii, jj, tuple(m.shape))
-    d[0, 0] = (d[0, 0].double() * torch.exp(bias)).to(d.dtype)
-    d[0, 0][m], c[0, 0][m] = (1.0 / q).to(d.dtype), conf.to(c.dtype)
-    return d, c
+    fit's own sigma, ``r.sigma_fit_raw``; :func:`refuse`): the fused depth and confidence maps
+    ``(1, 1, h, w)``, for an A/B of the fusion on the same fits."""
+    d, c = refuse(r.fitted[0, 0], r.depth_fit[0, 0], r.sigma_fit_raw[0, 0], r.slope[0, 0], depth[0, 0],
+                  confidence[0, 0], stage.confidence_scale, scales)
+    return d[None, None], c[None, None]
 
 
 def structure_rows(model: DFDModel, stage: LikelihoodStage, scenes: int, baseline: LikelihoodScales | None = None

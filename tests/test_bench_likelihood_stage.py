@@ -103,6 +103,15 @@ def test_refusing_the_stages_fits_with_its_own_scales_gives_its_map_and_other_sc
     d0, _ = refused(stage, r, depth, conf, LikelihoodScales(2.0, 0.7))  # the model's map as it is
     assert torch.equal(d0[~r.fitted], depth[~r.fitted])
     assert float(r.bias.abs().min()) > 1e-4 and not torch.allclose(d0, r.depth)
+    # a map of the fused scale with a slope part: the same confidence as the stage's, through the tiles' slopes
+    sloped = LikelihoodScales(2.0, 0.7, shared_bias=True, bias_radius=2, fused_log_b=(-9.0, -2.0),
+                              fused_log_b_calibrated=(-8.5, -2.0), fused_log_slope=(math.log(1e-3), math.log(0.1)),
+                              fused_slope_log_shift=(-0.7, 0.7))
+    stage_s = LikelihoodStage(Camera.preset("reference"), 64, 32, 0.01, family="gaussian", scales=sloped)
+    r_s = stage_s(i1, i2, depth, conf)
+    _, c_s = refused(stage_s, r_s, depth, conf, sloped)
+    torch.testing.assert_close(c_s, r_s.confidence, rtol=1e-4, atol=1e-6)
+    assert not torch.allclose(r_s.confidence[r_s.fitted], r.confidence[r.fitted])
 
 
 def _laplace_tiles(n: int, factor: float, seed: int) -> tuple[torch.Tensor, torch.Tensor]:

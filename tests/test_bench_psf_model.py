@@ -31,7 +31,7 @@ def test_the_plane_table_scores_every_stage_against_the_truth():
     for i in range(4):
         row = {"index": i, "true_q": true, "model_q": true * 1.04}
         for k, f in zip(STAGES, (1.02, 1.015, 1.01, 1.0)):
-            row[f"{k}_q"] = true * f
+            row[f"{k}_q"], row[f"{k}_conf"] = true * f, torch.full((25,), 0.5, dtype=torch.float64)
         rows.append(row)
     table, lines = plane_table(rows)
     cells = {r[0]: r[1] for r in table}
@@ -50,17 +50,20 @@ def test_the_bias_stage_is_scored_beside_the_others_where_it_was_run():
         for k, f in zip((*STAGES, BIAS_STAGE), (1.02, 1.015, 1.01, 1.0, 1.005)):
             row[f"{k}_q"], row[f"{k}_conf"] = true * f, torch.full((25,), 0.5, dtype=torch.float64)
         rows.append(row)
-    assert stages_of(rows) == (*STAGES, BIAS_STAGE) and stages_of([{"calibrated_q": true}]) == STAGES
+    assert stages_of(rows) == (*STAGES, BIAS_STAGE) and stages_of([{"calibrated_conf": true}]) == ("calibrated",)
     table, lines = plane_table(rows)
     assert [r[0] for r in table] == ["model", *STAGES, BIAS_STAGE]
     assert table[-1][1] == f"{100 * abs(1 / 1.005 - 1):.2f} %"
     assert len(lines) == 5 and lines[4].startswith(f"- {BIAS_STAGE} - calibrated: per tile -0.49 points")
     assert len(family_table(rows)[0]) == 3 + 1 + len(STAGES) + 1
-    scenes = [{"layout": "slanted", "scene": 0, "true": true, "model": true, "model_conf": true,
-               **{k: true * 1.01 for k in (*STAGES, BIAS_STAGE)},
+    edge = torch.zeros(25, dtype=torch.bool)
+    edge[:5] = True
+    scenes = [{"layout": "slanted", "scene": 0, "true": true, "edge": edge, "model": true, "model_conf": true,
+               **{k: torch.where(edge, true * 2, true * 1.01) for k in (*STAGES, BIAS_STAGE)},
                **{f"{k}_conf": torch.full((25,), 0.7, dtype=torch.float64) for k in (*STAGES, BIAS_STAGE)}}]
     (slanted,) = structure_table(scenes)
     assert len(slanted) == 3 + 1 + len(STAGES) + 1 and slanted[-1].startswith("1.00 %; 100 % at >= 0.5")
+    assert slanted[2] == 20  # the tiles near an edge (here 100 % off) are left out
 
 
 def test_the_family_table_divides_each_familys_error_by_its_own_bound():
@@ -70,7 +73,7 @@ def test_the_family_table_divides_each_familys_error_by_its_own_bound():
         row = {"index": i, "family": family, "true_q": true, "model_q": true / (1 + err),
                "bound": torch.full((25,), bound / 0.6745, dtype=torch.float64)}
         for k in STAGES:
-            row[f"{k}_q"] = true / (1 + err / 2)
+            row[f"{k}_q"], row[f"{k}_conf"] = true / (1 + err / 2), torch.full((25,), 0.5, dtype=torch.float64)
         rows.append(row)
     table = {r[0]: r for r in family_table(rows)}
     assert table["dots"][1] == 2 and table["stripes"][1] == 1

@@ -174,6 +174,29 @@ def test_the_fused_scales_map_makes_the_correlated_fusion_state_its_error():
     assert all(abs(r - 1.0) < 0.12 for r in decile_ratios(err_h, mapped.fused_scale(b_h)))
 
 
+def test_the_maps_slope_part_states_the_error_of_steep_and_flat_tiles_alike():
+    errors = _correlated_errors()
+    n = errors["fit_error"].numel()
+    # the error grows with the slope, (slope / 0.01)^0.3 times what the sigmas say (0.5x on the flattest
+    # tiles, 2x on the steepest): a map of the scale alone cannot state both
+    u = torch.rand(n, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    slope = 0.001 * 100.0 ** u  # log-uniform in 0.001 .. 0.1
+    grow = (slope / 0.01) ** 0.3
+    errors = {**errors, "slope": slope, "fit_error": errors["fit_error"] * grow,
+              "model_error": errors["model_error"] * grow}
+    scales = fit_scales(errors, slope_edges=(), remove_bias=False)
+    err, b = fused_errors(errors, scales)
+    steep = slope > 0.01
+    plain = fit_fused_scale_map(err, b, scales, bins=20)
+    assert plain.fused_log_slope is None
+    ratios = lambda m, sel: decile_ratios(err[sel], m.fused_scale(b, slope)[sel], bins=5)  # noqa: E731
+    assert max(ratios(plain, steep)) > 1.3 and min(ratios(plain, ~steep)) < 0.75
+    mapped = fit_fused_scale_map(err, b, scales, bins=20, slope=slope, slope_bins=10)
+    assert mapped.fused_log_slope is not None
+    for sel in (steep, ~steep):
+        assert all(abs(r - 1.0) < 0.12 for r in ratios(mapped, sel)), ratios(mapped, sel)
+
+
 def test_fused_errors_are_the_stages_fusion_per_image():
     errors = _correlated_errors(images=3, tiles=10)
     errors["fit_sigma"] = torch.where(torch.arange(30) % 3 == 0, torch.inf, errors["fit_sigma"])

@@ -255,7 +255,7 @@ def test_the_stage_rejects_bad_input_with_typed_errors():
 def test_scales_keep_the_shared_bias_flag_and_read_version_1(tmp_path):
     s = LikelihoodScales((1.5, 3.0), (0.7, 0.6), (0.02,), shared_bias=True)
     s.save(tmp_path / "s.json")
-    assert json.loads((tmp_path / "s.json").read_text())["format"] == "tdfd.likelihood_scales/3"
+    assert json.loads((tmp_path / "s.json").read_text())["format"] == "tdfd.likelihood_scales/4"
     assert LikelihoodScales.load(tmp_path / "s.json").shared_bias is True
     LikelihoodScales(2.0, 0.5, shared_bias=True, bias_radius=2).save(tmp_path / "r.json")
     assert LikelihoodScales.load(tmp_path / "r.json").bias_radius == 2
@@ -362,11 +362,37 @@ def test_the_fused_scales_map_round_trips_and_version_2_loads_without_it(tmp_pat
     assert v2.fused_log_b is None and v2.fused_log_b_calibrated is None and v2.shared_bias
 
 
+def test_the_fused_scales_slope_part_round_trips_and_needs_the_slope(tmp_path):
+    s = LikelihoodScales(2.0, 0.5, fused_log_b=(-6.0, -2.0), fused_log_b_calibrated=(-6.0, -2.0),
+                         fused_log_slope=(math.log(0.01), math.log(0.1)), fused_slope_log_shift=(-0.5, 0.25))
+    s.save(tmp_path / "s.json")
+    back = LikelihoodScales.load(tmp_path / "s.json")
+    assert back == s and back.fused_slope_log_shift == (-0.5, 0.25)
+    b = torch.full((5,), math.exp(-4.0), dtype=torch.float64)
+    # slope 0 reads as 1e-4 (below the first knot: held), 0.01, sqrt(0.001) (halfway in log), 0.1, 1 (held)
+    slope = torch.tensor([0.0, 0.01, math.sqrt(0.001), 0.1, 1.0], dtype=torch.float64)
+    torch.testing.assert_close(back.fused_scale(b, slope).log(),
+                               torch.tensor([-4.5, -4.5, -4.125, -3.75, -3.75], dtype=torch.float64))
+    with pytest.raises(InputError, match="slope part"):
+        back.fused_scale(b)
+    with pytest.raises(InputError, match="slope part"):
+        back.fused_scale(b, slope[:3])
+    (tmp_path / "v3.json").write_text(json.dumps({"format": "tdfd.likelihood_scales/3", "fit": 2.0, "model": 0.5,
+                                                  "fused_log_b": [-6.0, -2.0], "fused_log_b_calibrated": [-5.0, -2.0]}))
+    v3 = LikelihoodScales.load(tmp_path / "v3.json")
+    assert v3.fused_log_slope is None and float(v3.fused_scale(b[:1]).log()) == pytest.approx(-3.5)
+
+
 @pytest.mark.parametrize("knots", [dict(fused_log_b=(-5.0, -3.0)),  # one of the pair
                                    dict(fused_log_b=(-5.0, -3.0), fused_log_b_calibrated=(-3.0, -4.0)),  # order lost
                                    dict(fused_log_b=(-3.0, -5.0), fused_log_b_calibrated=(-4.0, -3.0)),  # not increasing
                                    dict(fused_log_b=(-5.0,), fused_log_b_calibrated=(-4.0,)),  # one knot
-                                   dict(fused_log_b=(-5.0, math.nan), fused_log_b_calibrated=(-4.0, -3.0))])
+                                   dict(fused_log_b=(-5.0, math.nan), fused_log_b_calibrated=(-4.0, -3.0)),
+                                   dict(fused_log_slope=(-5.0, -3.0), fused_slope_log_shift=(0.0, 1.0)),  # no scale part
+                                   dict(fused_log_b=(-5.0, -3.0), fused_log_b_calibrated=(-4.0, -3.0),
+                                        fused_log_slope=(-5.0, -3.0)),  # one of the slope pair
+                                   dict(fused_log_b=(-5.0, -3.0), fused_log_b_calibrated=(-4.0, -3.0),
+                                        fused_log_slope=(-3.0, -5.0), fused_slope_log_shift=(0.0, 1.0))])
 def test_bad_fused_scale_knots_are_typed_errors(tmp_path, knots):
     with pytest.raises(InputError):
         LikelihoodScales(2.0, 0.5, **knots)

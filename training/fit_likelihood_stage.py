@@ -29,7 +29,11 @@ Last, the fused Laplace scale the factors give is mapped once more (``log b' = l
 of the same tiles' fused errors, :func:`fused_errors`): the fusion takes the two errors for
 independent and the fit's curvature sigma for proportional to its error, and neither holds, so
 without the map the stage's confidence overstated its certainty in its most confident deciles
-(``docs/BENCHMARKS.md``, section ``likelihood_stage``).
+(``docs/BENCHMARKS.md``, section ``likelihood_stage``). The map has a second part in the tile's
+slope, ``+ g(log max(slope, 1e-4))`` in ``--fused-slope-bins`` equal-count bands, backfitted with
+the first (:func:`tdfd.model.scale_calibration_fit.fit_covariate_calibration`): with the scale
+part alone the planes' most confident tiles erred half what it stated and the occlusion layouts'
+more (the fit takes each tile for fronto-parallel, and the planes' tiles are flat).
 
 With ``--calibrated-psf FRAMES`` each scene's stage is told its own lens's PSF as a focus sweep
 measures it (:func:`training.calibrated_lens.sweep_fit`, FRAMES frames per power), not the PSF
@@ -59,16 +63,18 @@ import torch
 from tqdm import tqdm
 
 from data_synth.psf import sample_psf_model
-from tdfd.dfd.inverse_variance import LikelihoodScales, model_sigma, sigma_factor
+from tdfd.dfd.inverse_variance import SLOPE_FLOOR, LikelihoodScales, model_sigma, sigma_factor
 from tdfd.dfd.likelihood_stage import LikelihoodStage, fuse_with_fit
 from tdfd.dfd.shared_bias import bias_map
 from tdfd.model import DFDModel
-from tdfd.model.scale_calibration_fit import fit_scale_calibration, laplace_mixture_median
+from tdfd.model.scale_calibration_fit import (fit_covariate_calibration, fit_scale_calibration,
+                                             laplace_mixture_median)
 
 from .calibrate_scale import PLANE_SEED, STRUCTURE_SEED, calibration_scene_sets
 from .calibrated_lens import SWEEP_CHART, SWEEP_CHARTS, sweep_fit
 
-__all__ = ["SLOPE_EDGES", "MIN_BAND_TILES", "BIAS_ITERATIONS", "BIAS_RADIUS", "FUSED_BINS", "FUSED_MIN_TILES_PER_BIN",
+__all__ = ["SLOPE_EDGES", "MIN_BAND_TILES", "BIAS_ITERATIONS", "BIAS_RADIUS", "FUSED_BINS", "FUSED_SLOPE_BINS",
+           "FUSED_MIN_TILES_PER_BIN",
            "CALIBRATION_SWEEP_SEED", "black_levels", "collect_stage_errors", "image_biases", "model_error_without_bias",
            "fit_scales", "fused_errors", "fit_fused_scale_map", "decile_ratios", "ERROR_COLUMNS", "save_stage_errors",
            "load_stage_errors", "main"]
@@ -84,6 +90,8 @@ BIAS_ITERATIONS = 3
 BIAS_RADIUS = 3
 #: equal-count bins of the fused scale, one knot of its map each
 FUSED_BINS = 40
+#: equal-count bands of the tiles' slope, one knot of that map's slope part each
+FUSED_SLOPE_BINS = 10
 #: the fewest tiles per bin of that map (fewer tiles: fewer bins, and below two bins no map)
 FUSED_MIN_TILES_PER_BIN = 25
 #: the columns :func:`collect_stage_errors` returns and an errors file must hold
@@ -218,13 +226,22 @@ def fused_errors(errors: dict[str, torch.Tensor], scales: LikelihoodScales) -> t
     return err, scale
 
 
-def fit_fused_scale_map(error: torch.Tensor, scale: torch.Tensor, scales: LikelihoodScales, bins: int = FUSED_BINS
-                        ) -> LikelihoodScales:
+def fit_fused_scale_map(error: torch.Tensor, scale: torch.Tensor, scales: LikelihoodScales, bins: int = FUSED_BINS,
+                        slope: torch.Tensor | None = None, slope_bins: int = FUSED_SLOPE_BINS) -> LikelihoodScales:
     """``scales`` with the map of their fused scale (:meth:`LikelihoodScales.fused_scale`) fitted on
     the tiles' fused ``error`` and ``scale`` ``(N,)`` (:func:`fused_errors` with these ``scales``;
-    ``bins`` equal-count bins of the scale, their log factors smoothed over 3 bins)."""
-    kx, ky = fit_scale_calibration(scale, error, bins=bins, smooth=3)
-    return dataclasses.replace(scales, fused_log_b=tuple(kx.tolist()), fused_log_b_calibrated=tuple(ky.tolist()))
+    ``bins`` equal-count bins of the scale, their log factors smoothed over 3 bins); with ``slope``
+    ``(N,)`` (the tiles' slopes) and ``slope_bins`` >= 2 also its slope part, backfitted with the
+    scale part (:func:`tdfd.model.scale_calibration_fit.fit_covariate_calibration` on
+    ``log max(slope, SLOPE_FLOOR)``)."""
+    if slope is None or slope_bins == 0:
+        kx, ky = fit_scale_calibration(scale, error, bins=bins, smooth=3)
+        return dataclasses.replace(scales, fused_log_b=tuple(kx.tolist()), fused_log_b_calibrated=tuple(ky.tolist()),
+                                   fused_log_slope=None, fused_slope_log_shift=None)
+    kx, ky, sx, sy = fit_covariate_calibration(scale, error, slope.double().clamp_min(SLOPE_FLOOR).log(), bins=bins,
+                                               smooth=3, covariate_bins=slope_bins)
+    return dataclasses.replace(scales, fused_log_b=tuple(kx.tolist()), fused_log_b_calibrated=tuple(ky.tolist()),
+                               fused_log_slope=tuple(sx.tolist()), fused_slope_log_shift=tuple(sy.tolist()))
 
 
 def decile_ratios(error: torch.Tensor, scale: torch.Tensor, bins: int = 10) -> list[float]:
@@ -280,6 +297,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="measure the model's bias on the fitted tiles within this many tiles (0: the whole image)")
     p.add_argument("--fused-bins", type=int, default=FUSED_BINS,
                    help="equal-count bins of the fused scale for its map (0: no map)")
+    p.add_argument("--fused-slope-bins", type=int, default=FUSED_SLOPE_BINS,
+                   help="equal-count bands of the tiles' slope for the map's slope part (0: none)")
     p.add_argument("--calibrated-psf", type=int, default=0, metavar="FRAMES",
                    help="tell each scene's stage its lens's PSF as a focus sweep with FRAMES frames per power "
                         "measures it (the scales of `tdfd depth --psf-model`; default 0: the PSF profiled)")
@@ -295,8 +314,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if (args.planes < 1 or args.scenes < 0 or args.bias_radius < 0 or args.fused_bins == 1 or args.fused_bins < 0
-            or args.calibrated_psf < 0):
-        p.error("--planes must be >= 1, --scenes, --bias-radius and --calibrated-psf >= 0, --fused-bins 0 or >= 2")
+            or args.calibrated_psf < 0 or args.fused_slope_bins == 1 or args.fused_slope_bins < 0):
+        p.error("--planes must be >= 1, --scenes, --bias-radius and --calibrated-psf >= 0, --fused-bins and "
+                "--fused-slope-bins 0 or >= 2")
     torch.set_num_threads(args.threads)
     model = DFDModel.load(args.model)
     t0 = time.perf_counter()
@@ -316,9 +336,13 @@ def main(argv: list[str] | None = None) -> int:
                        fused_err.numel(), f"{bins} bins" if bins >= 2 else "no map", args.fused_bins,
                        FUSED_MIN_TILES_PER_BIN)
     if bins >= 2:
-        fitted = fit_fused_scale_map(fused_err, fused_b, fitted, bins)
+        slope_bins = min(args.fused_slope_bins, fused_err.numel() // FUSED_MIN_TILES_PER_BIN)
+        fitted = fit_fused_scale_map(fused_err, fused_b, fitted, bins, errors["slope"],
+                                     slope_bins if slope_bins >= 2 else 0)
     wall = time.perf_counter() - t0
     counts = [int((errors["set"] == k).sum()) for k in range(4)]
+    stated = fitted.fused_scale(fused_b, errors["slope"])
+    sets = [(name, errors["set"] == k) for k, name in enumerate(("planes", "slanted", "layout", "smooth"))]
     bands = fitted.band(errors["slope"])
     f_fit, f_model = fitted.factors(errors["slope"])
     biases = (image_biases(errors, f_fit, f_model, fitted.bias_radius) if fitted.shared_bias
@@ -328,6 +352,8 @@ def main(argv: list[str] | None = None) -> int:
                    f"--scenes {args.scenes}" + (f" --shared-bias --bias-radius {args.bias_radius}" if args.shared_bias
                                                   else "")
                    + (f" --fused-bins {args.fused_bins}" if args.fused_bins != FUSED_BINS else "")
+                   + (f" --fused-slope-bins {args.fused_slope_bins}" if args.fused_slope_bins != FUSED_SLOPE_BINS
+                      else "")
                    + (f" --calibrated-psf {args.calibrated_psf}" if args.calibrated_psf else "")
                    + (f" --sweep-chart {args.sweep_chart}" if args.calibrated_psf and args.sweep_chart != SWEEP_CHART
                       else "")
@@ -347,7 +373,9 @@ def main(argv: list[str] | None = None) -> int:
                              "fused": float(fused_err.abs().median())},
         "fused_decile_ratios_most_confident_last": {
             "before_map": [round(r, 3) for r in decile_ratios(fused_err, fused_b)],
-            "after_map": [round(r, 3) for r in decile_ratios(fused_err, fitted.fused_scale(fused_b))],
+            "after_map": [round(r, 3) for r in decile_ratios(fused_err, stated)],
+            "after_map_per_set": {name: [round(r, 3) for r in decile_ratios(fused_err[sel], stated[sel])]
+                                  for name, sel in sets if int(sel.sum()) >= 20},
             "note": "in sample: the map's own tiles; observed median |e| over the Laplace mixture median"},
         "tiles_per_slope_band": [int((bands == k).sum()) for k in range(len(fitted.fit))],
         "fused_bins": bins if bins >= 2 else 0,

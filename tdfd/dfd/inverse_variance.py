@@ -13,7 +13,10 @@ The fused sigma is stated as a Laplace scale on the model's confidence scale; si
 errors are not independent (they share the scene) and the fit's curvature sigma is not
 proportional to its error, that scale is mapped once more, ``log b' = log b + s(log b)``
 (:func:`tdfd.knot_map.calibrate_log_scale`, fitted on the fused errors of the same training
-scenes: :meth:`LikelihoodScales.fused_scale`), so that its median error is ``b' ln 2`` along ``b``.
+scenes: :meth:`LikelihoodScales.fused_scale`), so that its median error is ``b' ln 2`` along ``b``;
+since format 4 also along the tile's slope in the model's map, ``+ g(log max(slope, 1e-4))``:
+the fit takes each tile for fronto-parallel, so the fused error grows with the slope at a given
+``b`` (on the training scenes 0.5x the median factor on flat tiles, 1.3x on the steepest).
 
 Example:
     >>> import torch
@@ -33,17 +36,19 @@ from typing import Any
 import torch
 
 from ..errors import InputError, ModelError
-from ..knot_map import calibrate_log_scale, validate_knots
+from ..knot_map import calibrate_log_scale, knot_pairs, piecewise_linear, validate_knots
 
-__all__ = ["MEDIAN_ABS_NORMAL", "SCALES_FORMAT", "SCALES_PSF", "model_sigma", "confidence_from_sigma", "sigma_factor",
+__all__ = ["MEDIAN_ABS_NORMAL", "SCALES_FORMAT", "SCALES_PSF", "SLOPE_FLOOR", "model_sigma", "confidence_from_sigma", "sigma_factor",
            "fuse", "LikelihoodScales", "tile_slope"]
 
 #: The median of ``|x|`` for a standard normal ``x``.
 MEDIAN_ABS_NORMAL = 0.6744897501960817
-#: The ``format`` of a scales file (versions 1, before ``shared_bias``, and 2, before the fused
-#: scale's map, still load: without them).
-SCALES_FORMAT = "tdfd.likelihood_scales/3"
-_FORMATS = ("tdfd.likelihood_scales/1", "tdfd.likelihood_scales/2", SCALES_FORMAT)
+#: The ``format`` of a scales file (versions 1, before ``shared_bias``, 2, before the fused
+#: scale's map, and 3, before its slope part, still load: without them).
+SCALES_FORMAT = "tdfd.likelihood_scales/4"
+_FORMATS = ("tdfd.likelihood_scales/1", "tdfd.likelihood_scales/2", "tdfd.likelihood_scales/3", SCALES_FORMAT)
+#: the slope below which the fused scale's slope part reads the slope as this (a flat map's slope is 0)
+SLOPE_FLOOR = 1e-4
 #: the PSFs a scales file can be fitted for (:attr:`LikelihoodScales.psf`); a file without the key: profiled
 SCALES_PSF = ("profiled", "measured")
 _TINY = 1e-150  # squares stay above float64's smallest normal
@@ -140,6 +145,9 @@ class LikelihoodScales:
         fused_log_b, fused_log_b_calibrated: knots of the map of the fused Laplace scale
             (:meth:`fused_scale`; :func:`~tdfd.knot_map.validate_knots`), both or neither; ``None``:
             the fused scale as the two factors make it.
+        fused_log_slope, fused_slope_log_shift: knots of the map's slope part, ``g`` at
+            ``log max(slope, SLOPE_FLOOR)`` (piecewise linear, constant beyond the ends), both or
+            neither, and only with the map's scale part; ``None``: no slope part.
         psf: the PSF the stage was told while they were fitted: ``"profiled"`` (over the family's
             shapes, as shipped) or ``"measured"`` (each lens's own, from a focus sweep, as
             ``tdfd depth --psf-model`` tells it); the fit's errors, hence its factors, differ.
@@ -159,6 +167,8 @@ class LikelihoodScales:
     bias_radius: int | None = field(default=None, kw_only=True)
     fused_log_b: tuple[float, ...] | None = field(default=None, kw_only=True)
     fused_log_b_calibrated: tuple[float, ...] | None = field(default=None, kw_only=True)
+    fused_log_slope: tuple[float, ...] | None = field(default=None, kw_only=True)
+    fused_slope_log_shift: tuple[float, ...] | None = field(default=None, kw_only=True)
     psf: str = field(default="profiled", kw_only=True)
 
     def __post_init__(self) -> None:
@@ -186,6 +196,16 @@ class LikelihoodScales:
             x, y = validate_knots(self.fused_log_b, self.fused_log_b_calibrated)  # type: ignore[arg-type]
             object.__setattr__(self, "fused_log_b", tuple(x))
             object.__setattr__(self, "fused_log_b_calibrated", tuple(y))
+        if (self.fused_log_slope is None) != (self.fused_slope_log_shift is None):
+            raise InputError("the fused scale's slope part needs both fused_log_slope and fused_slope_log_shift, "
+                             "or neither")
+        if self.fused_log_slope is not None:
+            if self.fused_log_b is None:
+                raise InputError("the fused scale's slope part needs its scale part (fused_log_b)")
+            x, y = knot_pairs(self.fused_log_slope, self.fused_slope_log_shift, "fused_log_slope",
+                              "fused_slope_log_shift")
+            object.__setattr__(self, "fused_log_slope", tuple(x))
+            object.__setattr__(self, "fused_slope_log_shift", tuple(y))
 
     def band(self, slope: torch.Tensor) -> torch.Tensor:
         """Each tile's band index for its slope (``(T,)``, long)."""
@@ -197,21 +217,42 @@ class LikelihoodScales:
         k = self.band(slope)
         return (torch.tensor(self.fit, dtype=torch.float64)[k], torch.tensor(self.model, dtype=torch.float64)[k])
 
-    def fused_scale(self, scale: torch.Tensor) -> torch.Tensor:
-        """The fused Laplace scale ``b`` (any shape, > 0) through the map, ``exp(log b + s(log b))``;
-        ``b`` itself without one (``inf`` stays ``inf``).
+    def fused_scale(self, scale: torch.Tensor, slope: torch.Tensor | None = None) -> torch.Tensor:
+        """The fused Laplace scale ``b`` (any shape, > 0) through the map,
+        ``exp(log b + s(log b) + g(log max(slope, SLOPE_FLOOR)))``; ``b`` itself without one
+        (``inf`` stays ``inf``).
+
+        Args:
+            scale: the fused scales before the map.
+            slope: the tiles' slopes (:func:`tile_slope`), shaped as ``scale``; needed when the
+                map has a slope part, ignored otherwise.
+
+        Raises:
+            InputError: a slope part and no slope, or one of another shape.
 
         Example:
             >>> s = LikelihoodScales(fused_log_b=(-5.0, -3.0), fused_log_b_calibrated=(-4.0, -3.0))
             >>> round(float(s.fused_scale(torch.tensor([math.exp(-4.0)]))[0].log()), 4)
             -3.5
+            >>> s = LikelihoodScales(fused_log_b=(-5.0, -3.0), fused_log_b_calibrated=(-4.0, -3.0),
+            ...                      fused_log_slope=(-6.0, -2.0), fused_slope_log_shift=(-0.5, 0.5))
+            >>> round(float(s.fused_scale(torch.tensor([math.exp(-4.0)]), torch.tensor([0.0]))[0].log()), 4)
+            -4.0
         """
         b = scale.to(torch.float64)
         if self.fused_log_b is None:
             return b
         out = calibrate_log_scale(b.log(), torch.tensor(self.fused_log_b, dtype=torch.float64),
-                                  torch.tensor(self.fused_log_b_calibrated, dtype=torch.float64)).exp()
-        return torch.where(torch.isfinite(b), out, b)
+                                  torch.tensor(self.fused_log_b_calibrated, dtype=torch.float64))
+        if self.fused_log_slope is not None:
+            if slope is None or slope.shape != scale.shape:
+                raise InputError("these scales' fused map has a slope part: pass the tiles' slopes, shaped as the "
+                                 f"scales {tuple(scale.shape)}, got "
+                                 f"{None if slope is None else tuple(slope.shape)}")
+            out = out + piecewise_linear(slope.to(torch.float64).clamp_min(SLOPE_FLOOR).log(),
+                                         torch.tensor(self.fused_log_slope, dtype=torch.float64),
+                                         torch.tensor(self.fused_slope_log_shift, dtype=torch.float64))
+        return torch.where(torch.isfinite(b), out.exp(), b)
 
     def save(self, path: str | Path) -> None:
         """Write them as JSON (``format``: :data:`SCALES_FORMAT`)."""
@@ -234,6 +275,8 @@ class LikelihoodScales:
             return cls(fit=data["fit"], model=data["model"], slope_edges=tuple(data.get("slope_edges") or ()),
                        shared_bias=data.get("shared_bias", False), bias_radius=data.get("bias_radius"),
                        fused_log_b=data.get("fused_log_b"), fused_log_b_calibrated=data.get("fused_log_b_calibrated"),
+                       fused_log_slope=data.get("fused_log_slope"),
+                       fused_slope_log_shift=data.get("fused_slope_log_shift"),
                        psf=data.get("psf", "profiled"),
                        provenance=dict(data.get("provenance") or {}))
         except (KeyError, TypeError, InputError) as e:

@@ -151,7 +151,7 @@ def fuse_with_fit(q_model: torch.Tensor, sigma_model: torch.Tensor, q_fit: torch
 
     Returns:
         ``(q, confidence, bias, scale)``: the fused inverse depths; their confidence on the
-        model's scale, from the fused Laplace scale through ``scales``' map
+        model's scale, from the fused Laplace scale through ``scales``' map (its slope part at ``slope``)
         (:meth:`~tdfd.dfd.inverse_variance.LikelihoodScales.fused_scale`) where the fit has a
         finite sigma (elsewhere the fusion is the model's own estimate, and so is the
         confidence); the ``(h, w)`` map of the bias removed from the model's ``log q`` (0 without
@@ -169,7 +169,7 @@ def fuse_with_fit(q_model: torch.Tensor, sigma_model: torch.Tensor, q_fit: torch
     q_model = q_model * torch.exp(-bias[rows, cols])
     q, s_q = fuse(q_fit, s_fit, q_model, s_model * q_model)
     scale = s_q / q / f_model / math.sqrt(2.0)  # Laplace: the standard deviation is sqrt(2) b
-    stated = torch.where(torch.isfinite(s_fit), scales.fused_scale(scale), scale)
+    stated = torch.where(torch.isfinite(s_fit), scales.fused_scale(scale, slope), scale)
     return q, confidence_from_sigma(math.sqrt(2.0) * stated, confidence_scale), bias, scale
 
 

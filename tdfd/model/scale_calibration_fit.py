@@ -7,6 +7,8 @@ scales ``f b`` would have the observed median ``|e|`` (:func:`laplace_mixture_me
 knots of ``s``; :func:`fit_tile_calibration` adds the depth part ``g`` (bands of the refined
 inverse depth ``q``) and the edge part ``h`` (each distance to the grid's edge) by
 backfitting: each part is refitted to the errors with the other two applied, a few rounds.
+:func:`fit_covariate_calibration` backfits ``s`` with one part ``g(x)`` in any covariate the
+predictor knows (the likelihood stage's fused scale and its tile's slope).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import torch
 from ..errors import InputError
 from .scale_calibration import calibrate_log_scale, piecewise_linear
 
-__all__ = ["laplace_mixture_median", "fit_scale_calibration", "fit_tile_calibration"]
+__all__ = ["laplace_mixture_median", "fit_scale_calibration", "fit_tile_calibration", "fit_covariate_calibration"]
 
 
 def laplace_mixture_median(scales: torch.Tensor) -> float:
@@ -236,3 +238,62 @@ def fit_tile_calibration(scale: torch.Tensor, error: torch.Tensor, inverse_depth
         shift += c
     cfg["log_b_calibrated"] = [v + shift for v in cfg["log_b_calibrated"]]
     return cfg
+
+
+def fit_covariate_calibration(scale: torch.Tensor, error: torch.Tensor, covariate: torch.Tensor, bins: int = 40,
+                              smooth: int = 3, covariate_bins: int = 10, rounds: int = 5
+                              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Fit ``log b' = log b + s(log b) + g(x)`` by backfitting: ``s`` as
+    :func:`fit_scale_calibration` on the errors divided by ``exp(g)``, ``g`` piecewise linear in
+    a covariate ``x`` the predictor knows (knots at the medians of ``covariate_bins`` equal-count
+    bands of ``x``, log factors smoothed over ``smooth`` bands) with ``s`` applied, ``rounds``
+    times; ``g`` is then shifted to 0 at the tiles' median ``g`` (the constant goes into ``s``).
+
+    Args:
+        scale: ``(N,)`` predicted Laplace scale ``b`` (positive, finite).
+        error: ``(N,)`` observed signed relative error (finite).
+        covariate: ``(N,)`` finite values of ``x`` (e.g. a log slope).
+        bins, smooth: as in :func:`fit_scale_calibration`.
+        covariate_bins: bands of ``x`` (knots of ``g``), at least 2.
+        rounds: backfitting rounds, at least 1.
+
+    Returns:
+        ``(log_b, log_b_calibrated, x_knots, log_shift)``, float64: the knots of ``s``
+        (:func:`~tdfd.knot_map.calibrate_log_scale`) and of ``g``
+        (:func:`~tdfd.knot_map.piecewise_linear`).
+
+    Raises:
+        InputError: as :func:`fit_scale_calibration`; a covariate of another length or not
+            finite, too few tiles per band, or bands with equal medians.
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> b = torch.rand(20000, generator=g, dtype=torch.float64) * 0.05 + 0.01
+        >>> x = torch.rand(20000, generator=g, dtype=torch.float64)
+        >>> u = torch.rand(20000, generator=g, dtype=torch.float64) - 0.5
+        >>> e = b * (1 + x) * -u.sign() * torch.log1p(-2 * u.abs())  # errors grow with x
+        >>> kb, kr, kx, ky = fit_covariate_calibration(b, e, x, bins=10, covariate_bins=5)
+        >>> bool(abs(float(ky[-1] - ky[0]) - math.log(1.8 / 1.2)) < 0.1)  # the bands' medians 0.1 .. 0.9
+        True
+    """
+    b = torch.as_tensor(scale, dtype=torch.float64).flatten()
+    e = torch.as_tensor(error, dtype=torch.float64).flatten()
+    x = torch.as_tensor(covariate, dtype=torch.float64).flatten()
+    _check(b, e, bins, smooth)
+    if x.numel() != b.numel() or not bool(torch.isfinite(x).all()):
+        raise InputError(f"covariate must be {b.numel()} finite values, got {x.numel()}")
+    if covariate_bins < 2 or x.numel() < 2 * covariate_bins:
+        raise InputError(f"need at least 2 covariate bins and 2 tiles per bin, got {covariate_bins} for "
+                         f"{x.numel()} tiles")
+    if rounds < 1:
+        raise InputError(f"rounds must be >= 1, got {rounds}")
+    log_b, g = b.log(), torch.zeros_like(b)
+    for _ in range(rounds):
+        kb, kc = fit_scale_calibration(b, e / g.exp(), bins=bins, smooth=smooth)
+        medians, log_f = _band_factors(x, calibrate_log_scale(log_b, kb, kc).exp(), e, covariate_bins,
+                                       "covariate bands with equal medians: fewer bands, or a covariate that varies")
+        kx, ky = torch.tensor(medians, dtype=torch.float64), _moving_average(torch.tensor(log_f, dtype=torch.float64),
+                                                                             smooth)
+        g = piecewise_linear(x, kx, ky)
+    c = float(g.median())
+    return kb, kc + c, kx, ky - c

@@ -1,0 +1,299 @@
+r"""Issue 19's structure targets for the likelihood stage told each lens's PSF from a focus sweep.
+
+Run from the repository root::
+
+    .venv/bin/python -m benchmarks.bench_psf_structure [--scenes 128] [--frames-per-power 2]
+        [--sweep-chart dead_leaves] [--scales S.json] [--bias-scales S.json] [--no-write] [--rows R.pt]
+
+The structure benchmark's scenes (section ``structure``: 480x640, seed 53000017, slanted planes,
+piecewise-planar layouts with occlusion edges, smooth surfaces; the whole world), each scene's
+lens calibrated as a user calibrates theirs (a simulated focus sweep,
+:func:`training.calibrated_lens.sweep_fit`, the sweeps of ``benchmarks/bench_psf_model.py``),
+and three estimators on the same tiles: the shipped model's pooled map (``model``), the
+likelihood stage told the sweep's PSF (``calibrated``: ``tdfd depth --likelihood-stage
+models/reference.likelihood-calibrated.json --psf-model CAM.json``) and its very fits fused
+again with the model's bias removed first (``calibrated_bias``:
+``models/reference.likelihood-calibrated-bias.json``, :func:`benchmarks.stage_rows.refused`).
+
+Reports issue 19's three structure targets per layout and estimator (median error per tile
+<= 2 %; >= 50 % of the tiles at confidence >= 0.5 with a median error <= 1 % there), on the
+tiles away from occlusion edges and on all tiles, each judged over a bootstrap of the scenes
+(:func:`benchmarks.bench_structure.judge_over_scenes`); the paired differences between the
+estimators over the scenes; the Cramér-Rao reference of section ``structure`` on the same tiles
+(away from edges; the ratio issue 19 reports); and each confidence per decile (observed /
+predicted median error within 20 %, the deciles of section ``uncertainty``), plotted in
+``docs/psf_structure_calibration.png``. Writes section ``psf_structure`` of docs/BENCHMARKS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import torch
+
+from benchmarks.bench_bound import median_at_bound
+from benchmarks.bench_psf_model import BIAS_STAGE, SWEEP_CHART, SWEEP_CHARTS, structure_rows
+from benchmarks.bench_structure import (BOOTSTRAP_REPS, CONF, SCENE_ID_STEP, STRUCTURE_SEED, judge_over_scenes,
+                                        largest_share, scene_intervals)
+from benchmarks.depth_models import predicted_scale
+from benchmarks.report import ROOT, machine, markdown_table, repo_path, update_section
+from benchmarks.stage_rows import refuse
+from benchmarks.stage_uncertainty import decile_summary, relative_inverse_depth_error
+from benchmarks.uncertainty import decile_table, plot_calibration, resample_scenes
+from tdfd.dfd.inverse_variance import LikelihoodScales
+from tdfd.model import DFDModel
+from training.data import STRUCTURE_LAYOUTS
+
+__all__ = ["ESTIMATORS", "merge_scenes", "refuse_rows", "target_rows", "difference_rows", "bound_rows", "confidence_rows", "main"]
+
+#: the estimators scored, in the tables' order
+ESTIMATORS = ("model", "calibrated", BIAS_STAGE)
+#: issue 19's structure targets: median error per tile, share at confidence >= 0.5, median error there
+MEDIAN_LIMIT, SHARE_LIMIT, CONFIDENT_LIMIT = 0.02, 0.5, 0.01
+#: the calibration plot
+FIGURE = ROOT / "docs" / "psf_structure_calibration.png"
+
+
+def merge_scenes(rows: list[dict], layouts: tuple[str, ...] = STRUCTURE_LAYOUTS) -> dict[str, torch.Tensor]:
+    """The rows of :func:`benchmarks.bench_psf_model.structure_rows` (``layouts``' scenes) as one
+    set of flat tensors, with ``scene`` unique across layouts and ``layout`` the layout's index.
+
+    Raises:
+        ValueError: no rows, or a row of a layout outside ``layouts``.
+    """
+    rows = [r for r in rows if r["layout"] in layouts]
+    if not rows:
+        raise ValueError(f"no structure rows of layouts {layouts}")
+    keys = [k for k in rows[0] if isinstance(rows[0][k], torch.Tensor)]
+    out = {k: torch.cat([r[k] for r in rows]) for k in keys}
+    n = [r["true"].numel() for r in rows]
+    lay = [layouts.index(r["layout"]) for r in rows]
+    out["layout"] = torch.cat([torch.full((k,), j) for k, j in zip(n, lay)])
+    out["scene"] = torch.cat([torch.full((k,), j * SCENE_ID_STEP + r["scene"]) for k, j, r in zip(n, lay, rows)])
+    return out
+
+
+def refuse_rows(rows: list[dict], confidence_scale: float, scales: LikelihoodScales, bias_scales: LikelihoodScales
+                ) -> list[dict]:
+    """``rows`` (saved with ``--rows``) with ``calibrated`` and :data:`BIAS_STAGE` fused again from the
+    calibrated stage's very fits (``row["grids"]``, :func:`benchmarks.stage_rows.refuse`) with
+    ``scales`` and ``bias_scales``: what a run with those scales gives, without the sweeps and fits.
+
+    Raises:
+        ValueError: rows without the calibrated stage's grids.
+    """
+    out = []
+    for r in rows:
+        g = r.get("grids", {})
+        if "calibrated_depth_fit" not in g:
+            raise ValueError(f"row {r.get('layout')} {r.get('scene')} has no calibrated fits to fuse again (rows of an "
+                             "older run)")
+        row = dict(r)
+        for name, sc in (("calibrated", scales), (BIAS_STAGE, bias_scales)):
+            d, c = refuse(g["calibrated_fitted"], g["calibrated_depth_fit"], g["calibrated_sigma_fit_raw"],
+                          g["calibrated_slope"], g["model"], g["model_conf"], confidence_scale, sc)
+            row[name], row[f"{name}_conf"] = d[g["keep"]].double(), c[g["keep"]].double()
+        out.append(row)
+    return out
+
+
+def _sets(t: dict[str, torch.Tensor]) -> tuple[tuple[str, torch.Tensor], ...]:
+    return (("away from edges", ~t["edge"]), ("all tiles", torch.ones_like(t["edge"])))
+
+
+def _error(t: dict[str, torch.Tensor], estimator: str) -> torch.Tensor:
+    return (t[estimator] / t["true"] - 1).abs()
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.2f} %"
+
+
+def target_rows(rows: list[dict], estimators: tuple[str, ...] = ESTIMATORS, reps: int = BOOTSTRAP_REPS
+                ) -> list[list[object]]:
+    """Per layout (and all layouts), tile set and estimator: the median error per tile with its
+    interval over the scenes, the share at confidence >= 0.5 with its interval, the median error
+    there, and issue 19's verdict on each (:func:`benchmarks.bench_structure.judge_over_scenes`;
+    the share's median judged without an interval, as section ``structure`` does)."""
+    out = []
+    groups = [(layout, (layout,)) for layout in STRUCTURE_LAYOUTS] + [("all layouts", STRUCTURE_LAYOUTS)]
+    for name, layouts in groups:
+        if not any(r["layout"] in layouts for r in rows):
+            continue
+        t = merge_scenes(rows, layouts)
+        for label, sel in _sets(t):
+            for k in estimators:
+                e, c = _error(t, k)[sel], t[f"{k}_conf"][sel]
+                iv = scene_intervals(e, c, t["scene"][sel], reps)
+                med, share = float(e.median()), float((c >= CONF).double().mean())
+                there = float(e[c >= CONF].median()) if bool((c >= CONF).any()) else float("nan")
+                verdicts = [judge_over_scenes(med, iv["refined_lo"], iv["refined_hi"], MEDIAN_LIMIT, True),
+                            judge_over_scenes(share, iv["share_lo"], iv["share_hi"], SHARE_LIMIT, False),
+                            ("yes" if there <= CONFIDENT_LIMIT else "**no**") if there == there else "-"]
+                out.append([name, label, k, int(sel.sum()), f"{_pct(med)} ({_pct(iv['refined_lo'])} .. "
+                            f"{_pct(iv['refined_hi'])})", f"{100 * share:.0f} % ({100 * iv['share_lo']:.0f} .. "
+                            f"{100 * iv['share_hi']:.0f} %)", _pct(there) if there == there else "-", *verdicts])
+    return out
+
+
+def difference_rows(rows: list[dict], pairs: tuple[tuple[str, str], ...] = ((BIAS_STAGE, "calibrated"),
+                                                                             ("calibrated", "model"),
+                                                                             (BIAS_STAGE, "model")),
+                    reps: int = BOOTSTRAP_REPS) -> list[list[object]]:
+    """Per layout and tile set, each pair's difference of median errors (points) with its 95 %
+    interval over a bootstrap of the scenes (the same resamples for every pair, seed 0)."""
+    out = []
+    for layout in STRUCTURE_LAYOUTS:
+        if not any(r["layout"] == layout for r in rows):
+            continue
+        t = merge_scenes(rows, (layout,))
+        for label, sel in _sets(t):
+            errors = {k: _error(t, k)[sel] for k in {x for p in pairs for x in p}}
+            draws = list(resample_scenes(t["scene"][sel], reps, torch.Generator().manual_seed(0)))
+            cells = []
+            for a, b in pairs:
+                d = sorted(float(errors[a][ix].median() - errors[b][ix].median()) for ix in draws)
+                cells.append(f"{100 * (float(errors[a].median()) - float(errors[b].median())):+.2f} "
+                             f"({100 * d[int(0.025 * reps)]:+.2f} .. {100 * d[int(0.975 * reps) - 1]:+.2f})")
+            out.append([layout, label, *cells])
+    return out
+
+
+def bound_rows(rows: list[dict], estimators: tuple[str, ...] = ESTIMATORS) -> list[list[object]]:
+    """Per layout (and all), the tiles away from edges: the score at the Cramér-Rao reference
+    (PSF shared; :func:`benchmarks.bench_bound.median_at_bound`), each estimator's median error
+    over it, and the largest share of the tiles, the most confident first, whose median error is
+    <= 1 % (:func:`benchmarks.bench_structure.largest_share`; at the bound ranked by the bound)."""
+    out = []
+    groups = [(layout, (layout,)) for layout in STRUCTURE_LAYOUTS] + [("all layouts", STRUCTURE_LAYOUTS)]
+    for name, layouts in groups:
+        if not any(r["layout"] in layouts for r in rows):
+            continue
+        t = merge_scenes(rows, layouts)
+        sel = ~t["edge"] & torch.isfinite(t["bound_shared"])
+        if not bool(sel.any()):
+            continue
+        bound = t["bound_shared"][sel]
+        at_bound = median_at_bound(bound)
+        by_bound = bound.sort().values
+        cells = [_pct(at_bound), f"{100 * largest_share(lambda k: median_at_bound(by_bound[:k]), by_bound.numel(), CONFIDENT_LIMIT):.0f} %"]
+        for k in estimators:
+            e = _error(t, k)[sel]
+            ranked = e[torch.argsort(t[f"{k}_conf"][sel], descending=True, stable=True)]
+            share = largest_share(lambda n: float(ranked[:n].median()), ranked.numel(), CONFIDENT_LIMIT)
+            cells.append(f"{_pct(float(e.median()))} ({float(e.median()) / at_bound:.2f}x); {100 * share:.0f} %")
+        out.append([name, int(sel.sum()), *cells])
+    return out
+
+
+def confidence_rows(rows: list[dict], confidence_scale: float, estimators: tuple[str, ...] = ESTIMATORS,
+                    reps: int = 100) -> tuple[list[list[object]], dict[str, list[dict]]]:
+    """Each estimator's confidence per decile on every layout's scenes together, all tiles and away
+    from edges (:func:`benchmarks.stage_uncertainty.decile_summary`, the bootstrap drawing scenes),
+    and the decile tables of all tiles for the plot."""
+    t = merge_scenes(rows)
+    out, tables = [], {}
+    for label, sel in _sets(t):
+        for k in estimators:
+            err = relative_inverse_depth_error(t[k][sel], t["true"][sel])
+            out.append([label, k, int(sel.sum())] + decile_summary(t[f"{k}_conf"][sel], err, t["scene"][sel],
+                                                                  confidence_scale, reps))
+            if label == "all tiles":
+                conf = t[f"{k}_conf"][sel]
+                tables[k] = decile_table(conf, predicted_scale(conf.double(), confidence_scale), err)
+    return out, tables
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", type=int, default=128, help="structure scenes per layout (1-1000)")
+    p.add_argument("--frames-per-power", type=int, default=2, help="sweep frames averaged at each power")
+    p.add_argument("--sweep-chart", default=SWEEP_CHART, choices=SWEEP_CHARTS,
+                   help="the texture family the calibration sweeps see")
+    p.add_argument("--model", default=str(ROOT / "models" / "reference"))
+    p.add_argument("--scales", default="", help="the calibrated stage's sigma factors "
+                                                "(default: MODEL.likelihood-calibrated.json)")
+    p.add_argument("--bias-scales", default="", help="the scales that remove the model's bias "
+                                                     "(default: MODEL.likelihood-calibrated-bias.json)")
+    p.add_argument("--no-write", action="store_true", help="print only; leave docs/ alone")
+    p.add_argument("--rows", default="", help="also save every scene's tiles and fits (torch.save)")
+    p.add_argument("--from-rows", default="", metavar="PATH",
+                   help="score the fits a run saved with --rows, fused again with --scales and --bias-scales, "
+                        "instead of running the sweeps and the stage (the fits do not depend on the scales)")
+    args = p.parse_args(argv)
+    if not 1 <= args.scenes <= 1000 or args.frames_per_power < 1:
+        p.error("need 1 <= --scenes <= 1000 and --frames-per-power >= 1")
+    torch.set_num_threads(2)
+    model = DFDModel.load(args.model)
+    paths = (args.scales or f"{args.model}.likelihood-calibrated.json",
+             args.bias_scales or f"{args.model}.likelihood-calibrated-bias.json")
+    scales, bias_scales = LikelihoodScales.load(paths[0]), LikelihoodScales.load(paths[1])
+    if not bias_scales.shared_bias:
+        p.error(f"{paths[1]} does not remove the model's bias (fitted without --shared-bias)")
+    t0 = time.perf_counter()
+    if args.from_rows:
+        rows = [r for r in torch.load(args.from_rows, weights_only=True) if r["scene"] < args.scenes]
+        rows = refuse_rows(rows, model.confidence_scale, scales, bias_scales)
+    else:  # the profiled stage's scales are not used: only the calibrated stage runs
+        rows = structure_rows(model, (scales, scales), args.scenes, args.frames_per_power, args.sweep_chart,
+                              bias_scales, stages=("calibrated",), bound=True)
+    wall = time.perf_counter() - t0
+    if args.rows:
+        torch.save(rows, args.rows)
+    calibration, tables = confidence_rows(rows, model.confidence_scale)
+    if not args.no_write:
+        plot_calibration(tables, FIGURE, f"Structure scenes ({args.scenes} per layout): confidence per decile")
+    shown = [repo_path(x) for x in paths]
+    body = "\n".join([
+        f"Machine: {machine()}; the structure benchmark's first {args.scenes} scenes per layout (480x640, seed "
+        f"{STRUCTURE_SEED}, the whole world; the tiles in the working range; *away from edges* as in section "
+        f"`structure`); wall time {wall:.0f} s"
+        + (" (the fits a full run saved, fused again with these scales: `--from-rows`)" if args.from_rows else "")
+        + ". Each scene's lens calibrated from its own simulated sweep "
+        f"(`{args.sweep_chart}` chart, {args.frames_per_power} frame(s) per power: section `psf_model`'s sweeps). "
+        f"`model`: the shipped model's pooled map; `calibrated`: the likelihood stage told the sweep's PSF, scales "
+        f"`{shown[0]}`; `{BIAS_STAGE}`: its very fits fused again with `{shown[1]}` (the model's bias within "
+        f"{bias_scales.bias_radius} tiles removed first).",
+        "",
+        "Issue 19's structure targets (median error per tile <= 2 %; >= 50 % of the tiles at confidence >= 0.5, "
+        "their median error <= 1 %). Intervals: 2.5-97.5 % over 200 bootstrap resamples of the scenes; *yes* only "
+        "when the whole interval meets the target:",
+        "",
+        markdown_table(["layout", "tiles", "estimator", "count", "median error", "at confidence >= 0.5",
+                        "median there", "median <= 2 %", "share >= 50 %", "there <= 1 %"], target_rows(rows)),
+        "",
+        "Paired differences of the median error (points; 95 % over the same 200 resamples of the scenes):",
+        "",
+        markdown_table(["layout", "tiles", f"{BIAS_STAGE} - calibrated", "calibrated - model",
+                        f"{BIAS_STAGE} - model"], difference_rows(rows)),
+        "",
+        "Against the information limit (away from edges; section `structure`'s per-tile Cramér-Rao reference, the "
+        "PSF shared by the image): the score of an unbiased estimator at the bound, and each estimator's median "
+        "error with its ratio to it; after the semicolon the largest share of the tiles, the most confident first "
+        "(at the bound: the best bound first), whose median error is <= 1 %:",
+        "",
+        markdown_table(["layout", "tiles", "at the bound", "at the bound: share <= 1 %", *ESTIMATORS],
+                       bound_rows(rows)),
+        "",
+        "The confidence as an uncertainty (observed / predicted median error within 20 % in every confidence "
+        "decile; every layout's scenes together, 100 resamples of the scenes"
+        + (f"; plot `{repo_path(FIGURE)}`" if not args.no_write else "") + "):",
+        "",
+        markdown_table(["tiles", "confidence of", "count", "deciles within 20 %", "outside by > 2 s.e.",
+                        "ratio range", "worst ratio"], calibration),
+    ])
+    print(body)
+    if not args.no_write:
+        cmd = (f".venv/bin/python -m benchmarks.bench_psf_structure --scenes {args.scenes} "
+               f"--frames-per-power {args.frames_per_power} --sweep-chart {args.sweep_chart}"
+               + (f" --scales {args.scales}" if args.scales else "")
+               + (f" --bias-scales {args.bias_scales}" if args.bias_scales else ""))
+        update_section("psf_structure", "Structure targets with each lens's PSF measured from a focus sweep "
+                                        "(issue 19)", body, cmd)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,110 @@
+"""benchmarks/bench_psf_structure.py and bench_psf_refused.py: the structure targets' verdicts, and the
+saved fits fused again with other scales."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from benchmarks.bench_psf_model import BIAS_STAGE
+from benchmarks.bench_psf_refused import refuse_planes
+from benchmarks.bench_psf_structure import bound_rows, difference_rows, merge_scenes, refuse_rows, target_rows
+from benchmarks.bench_structure import SCENE_ID_STEP
+from tdfd.dfd.inverse_variance import LikelihoodScales
+
+F64 = torch.float64
+
+
+def _scene(layout: str, scene: int, n: int = 40) -> dict:
+    """A scene whose calibrated stage errs 0.8 % at confidence 0.9, the bias stage 0.5 % at 0.9 and
+    the model 3 % at 0.1 (the last 10 tiles near an edge, every estimator 10 % off there)."""
+    true = torch.full((n,), 0.5, dtype=F64)
+    edge = torch.arange(n) >= n - 10
+    row = {"layout": layout, "scene": scene, "true": true, "edge": edge,
+           "bound_shared": torch.where(edge, math.nan, 0.004).to(F64)}
+    for k, err, conf in (("model", 0.03, 0.1), ("calibrated", 0.008, 0.9), (BIAS_STAGE, 0.005, 0.9)):
+        row[k] = torch.where(edge, true * 1.1, true * (1 + err))
+        row[f"{k}_conf"] = torch.full((n,), conf, dtype=F64)
+    return row
+
+
+def test_scenes_merge_with_ids_unique_across_layouts():
+    t = merge_scenes([_scene("slanted", 0), _scene("smooth", 0), _scene("smooth", 1)])
+    assert t["true"].numel() == 120
+    assert torch.unique(t["scene"]).tolist() == [0, 2 * SCENE_ID_STEP, 2 * SCENE_ID_STEP + 1]
+    assert torch.unique(t["layout"]).tolist() == [0, 2]
+    with pytest.raises(ValueError, match="no structure rows"):
+        merge_scenes([_scene("slanted", 0)], ("layout",))
+
+
+def test_the_targets_are_judged_per_estimator_and_tile_set():
+    rows = [_scene("slanted", i) for i in range(6)]
+    table = target_rows(rows, reps=50)
+    cells = {(r[0], r[1], r[2]): r for r in table}
+    assert len(table) == 2 * 2 * 3  # slanted and all layouts, two tile sets, three estimators
+    away = cells[("slanted", "away from edges", "calibrated")]
+    assert away[3] == 180 and away[4].startswith("0.80 %") and away[5].startswith("100 %") and away[6] == "0.80 %"
+    assert away[7:] == ["yes", "yes", "yes"]
+    model = cells[("slanted", "away from edges", "model")]
+    assert model[7] == "**no**" and model[8] == "**no**" and model[6] == "-"
+    every = cells[("slanted", "all tiles", BIAS_STAGE)]
+    assert every[3] == 240 and every[4].startswith("0.50 %")  # the edge tiles are a quarter: the median stays
+    assert every[7:] == ["yes", "yes", "yes"]
+
+
+def test_differences_and_the_bound_are_scored_away_from_edges():
+    rows = [_scene("layout", i) for i in range(4)]
+    diff = {r[1]: r for r in difference_rows(rows, reps=20)}
+    assert diff["away from edges"][2] == "-0.30 (-0.30 .. -0.30)"  # bias stage - calibrated
+    assert diff["away from edges"][3].startswith("-2.20")  # calibrated - model
+    (layout, everything) = bound_rows(rows)
+    assert layout[:2] == ["layout", 120]
+    at_bound = float(layout[2].split()[0]) / 100
+    assert at_bound == pytest.approx(0.6745 * 0.004, rel=0.02)  # the median |e| of a normal of that sigma
+    assert layout[6] == "0.50 % (1.85x); 100 %" and layout[4].endswith("; 0 %")  # the model's 3 %: no share
+
+
+def _grids(h: int = 4, w: int = 5) -> dict:
+    g = torch.Generator().manual_seed(0)
+    fitted = torch.ones(h, w, dtype=torch.bool)
+    fitted[0, 0] = False
+    return {"keep": torch.ones(h, w, dtype=torch.bool), "model": torch.full((h, w), 0.5) * 1.02,
+            "model_conf": torch.full((h, w), 0.6), "calibrated_fitted": fitted,
+            "calibrated_depth_fit": 0.5 * (1 + 0.002 * torch.randn(h, w, generator=g)),
+            "calibrated_sigma_fit_raw": torch.full((h, w), 0.004, dtype=F64),
+            "calibrated_slope": torch.full((h, w), 0.01, dtype=F64)}
+
+
+def test_saved_fits_fused_again_follow_the_scales():
+    rows = [{**_scene("slanted", 0, 20), "grids": _grids()}]
+    # a fit weighed far above the model: the fused map is the fit's; far below: the model's
+    fit_wins = LikelihoodScales(1e-3, 1e3)
+    model_wins = LikelihoodScales(1e3, 1e-3, shared_bias=True)
+    (r,) = refuse_rows(rows, 0.01, fit_wins, model_wins)
+    g = rows[0]["grids"]
+    fitted = g["calibrated_fitted"].flatten()
+    torch.testing.assert_close(r["calibrated"][fitted], g["calibrated_depth_fit"].flatten()[fitted].double(),
+                               rtol=1e-5, atol=0)
+    assert float(r["calibrated"][0]) == pytest.approx(0.51)  # an unfitted tile keeps the model's estimate
+    # the model, its bias (2 %, measured against the fits) removed, stands for the bias stage
+    assert float((r[BIAS_STAGE][fitted] / 0.5 - 1).abs().max()) < 0.003
+    with pytest.raises(ValueError, match="no calibrated fits"):
+        refuse_rows([_scene("slanted", 0, 20)], 0.01, fit_wins, model_wins)
+
+
+def test_plane_fits_fused_again_follow_the_scales():
+    n = 25
+    q_true = torch.full((n,), 2.0, dtype=F64)
+    fits = {"fit_q": q_true * 1.001, "fit_sigma_raw": torch.full((n,), 0.004, dtype=torch.float32),
+            "slope": torch.zeros(n, dtype=F64)}
+    row = {"index": 0, "true_q": q_true, "model_q": q_true / 1.03, "model_conf": torch.full((n,), 0.5, dtype=F64),
+           **{f"{s}_{k}": v for s in ("calibrated", "told") for k, v in fits.items()}}
+    (r,) = refuse_planes([row], 0.01, LikelihoodScales(1e-3, 1e3), LikelihoodScales(1e3, 1e-3, shared_bias=True))
+    torch.testing.assert_close(r["calibrated_q"], q_true * 1.001, rtol=1e-5, atol=0)
+    torch.testing.assert_close(r["told_q"], q_true * 1.001, rtol=1e-5, atol=0)
+    torch.testing.assert_close(r[f"{BIAS_STAGE}_q"], q_true * 1.001, rtol=2e-3, atol=0)  # the model, debiased
+    assert bool((r["calibrated_conf"] > 0.5).all())
+    with pytest.raises(ValueError, match="square grid"):
+        refuse_planes([{**row, "true_q": q_true[:24]}], 0.01, LikelihoodScales(), None)
