@@ -45,7 +45,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import statistics
 import sys
 import time
@@ -55,40 +54,29 @@ import torch
 from tqdm import tqdm
 
 from benchmarks.bench_bound import (MEDIAN_ABS, depth_variances, median_at_bound, plane_fisher, psf_model,
-                                    psf_prior_variance, tile_fisher)
+                                    psf_prior_variance)
 from benchmarks.bench_likelihood_stage import paired_bootstrap
 from benchmarks.bench_plane_oracle import CLEAN_WORLD
 from benchmarks.bench_refinement import BENCH_SEED, bench_grids
 from benchmarks.bench_structure import STRUCTURE_SEED
 from benchmarks.bench_tile_oracle import interior_origins
-from benchmarks.depth_edges import edge_tiles
+from benchmarks.psf_stages import BIAS_STAGE, STAGES, SWEEP_SEED, stages_for, structure_rows
 from benchmarks.report import ROOT, comma_choices, machine, markdown_table, repo_path, update_section
 from benchmarks.stage_rows import refused
 from benchmarks.stage_uncertainty import decile_summary, relative_inverse_depth_error
 from data_synth.params import SynthConfig
 from tdfd.calibration.psf_model import PsfModelFit
 from tdfd.dfd.inverse_variance import LikelihoodScales
-from tdfd.dfd.likelihood_stage import LikelihoodStage
 from tdfd.dfd.psf_hypotheses import PsfHypothesis
 from tdfd.model import DFDModel
 from tdfd.optics.aberrated_psf import PSFModel
 from training.calibrated_lens import (SWEEP_CHART, SWEEP_CHARTS, SWEEP_DISTANCE_M, SWEEP_HALF_SPAN_PX, SWEEP_POWERS,
                                       SWEEP_REGIONS, SWEEP_SIZE, sweep_fit)
-from training.data import STRUCTURE_LAYOUTS, textured_scenes
+from training.data import STRUCTURE_LAYOUTS
 from training.fit_likelihood_stage import black_levels
 
-__all__ = ["kernel_error", "STAGES", "BIAS_STAGE", "FIT_FIELDS", "stages_of", "structure_rows", "main"]
+__all__ = ["kernel_error", "STAGES", "BIAS_STAGE", "stages_of", "main"]
 
-#: the sweeps' seeds (``training.calibrated_lens.sweep_fit``): planes at +i, structure scenes above
-SWEEP_SEED = 7_000_000
-
-#: the stages compared, in the tables' order
-STAGES = ("profiled", "calibrated_shipped_scales", "calibrated", "told")
-#: ``--bias-scales``: the ``calibrated`` stage's fits fused again with scales that remove the
-#: model's bias first (:func:`benchmarks.stage_rows.refused`)
-BIAS_STAGE = "calibrated_bias"
-#: a stage's result fields a structure row keeps on the whole grid (``row["grids"]``)
-FIT_FIELDS = ("depth_fit", "sigma_fit_raw", "slope", "fitted")
 #: the blurs (px) at which the kernels are compared
 KERNEL_SIGMAS = (-3.0, -2.0, -1.0, 1.0, 2.0, 3.0)
 
@@ -110,23 +98,6 @@ def kernel_error(fitted: PsfHypothesis, lens: PSFModel) -> float:
     size = max(bare.kernel_size(3.0), truth.kernel_size(3.0))
     a, b = bare.kernels(sig, size), truth.kernels(sig, size)
     return float(((a - b).norm(dim=(-1, -2)) / b.norm(dim=(-1, -2))).max())
-
-
-def _hypothesis(lens: PSFModel) -> PsfHypothesis:
-    return PsfHypothesis(lens.shape, lens.diffraction_sigma_px, lens.astigmatism, lens.astigmatism_angle,
-                         lens.spherical)
-
-
-def _stages(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], fit: PsfModelFit, lens: PSFModel,
-            names: tuple[str, ...] = STAGES) -> dict[str, LikelihoodStage]:
-    """The stages ``names`` (of :data:`STAGES`) for one lens; ``scales``: the profiled stage's, the measured PSF's."""
-    shipped, measured = scales
-    make = {"profiled": lambda: LikelihoodStage.for_model(model, scales=shipped),
-            "calibrated_shipped_scales": lambda: LikelihoodStage.for_model(model, scales=shipped,
-                                                                           hypotheses=(fit.hypothesis,)),
-            "calibrated": lambda: LikelihoodStage.for_model(model, scales=measured, hypotheses=(fit.hypothesis,)),
-            "told": lambda: LikelihoodStage.for_model(model, scales=measured, hypotheses=(_hypothesis(lens),))}
-    return {name: make[name]() for name in names}
 
 
 def plane_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], samples: int, world: str,
@@ -157,7 +128,7 @@ def plane_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales
         d = float(true[i].median())  # the bound at the plane's depth, the PSF shared by the image (bench_bound)
         var = depth_variances(plane_fisher(model.camera, s["sharp"][0], d, p), prior_var)["tile_shared"]
         row["bound"] = (var.sqrt() * d)[inner, inner].flatten()
-        for name, stage in _stages(model, scales, fit, lens).items():
+        for name, stage in stages_for(model, scales, fit, lens).items():
             r = stage(s["image_f1"][None].float(), s["image_f2"][None].float(), ref[i][None, None],
                       conf[i][None, None], black_level=black_levels([p])[0])
             row[f"{name}_q"] = 1.0 / r.depth[0, 0, inner, inner].flatten().double()
@@ -174,64 +145,6 @@ def plane_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales
                 row["profiled_psf"] = r.hypotheses[0]
         rows.append(row)
     return rows
-
-
-def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], scenes: int,
-                   frames_per_power: int, chart: str = SWEEP_CHART, bias_scales: LikelihoodScales | None = None,
-                   stages: tuple[str, ...] = STAGES, bound: bool = False) -> list[dict]:
-    """Per 480x640 structure scene (the first ``scenes`` per layout, each one's lens calibrated
-    from its own sweep): its tiles in the working range, their true, model and each of ``stages``'
-    depth and confidence (with ``bias_scales`` :data:`BIAS_STAGE`'s too, from the ``calibrated``
-    stage's fits), ``grids`` (the whole grid's ``keep`` mask, the model's map and each stage's
-    :data:`FIT_FIELDS`, to fuse the same fits again), ``edge`` (within one tile of an occlusion edge,
-    :func:`benchmarks.depth_edges.edge_tiles`) and with ``bound`` ``bound_shared``: the tile's
-    relative depth standard deviation at the Cramér-Rao reference of section ``structure``
-    (:func:`benchmarks.bench_bound.tile_fisher`, the PSF shared by the image; NaN near edges).
-
-    Raises:
-        ValueError: ``scenes`` over 1000 (the sweeps' seeds of two layouts would meet), or
-            ``bias_scales`` without the ``calibrated`` stage.
-    """
-    if not 0 <= scenes <= 1000:
-        raise ValueError(f"structure scenes per layout must be in 0..1000 (the sweeps' seeds), got {scenes}")
-    if bias_scales is not None and "calibrated" not in stages:
-        raise ValueError(f"{BIAS_STAGE} re-fuses the calibrated stage's fits: stages {stages} lack it")
-    near, far = model.camera.depth_range_m
-    prior_var = psf_prior_variance(SynthConfig(), model.camera) if bound else None
-    out = []
-    for layout in STRUCTURE_LAYOUTS:
-        ds = textured_scenes(model.camera, model.tile, model.stride, layout, (480, 640), STRUCTURE_SEED,
-                             return_sharp=bound)
-        for i in tqdm(range(scenes), desc=f"psf model: {layout}", mininterval=10.0):
-            b = ds.batch([i])
-            i1, i2 = b["image_f1"].float(), b["image_f2"].float()
-            with torch.no_grad():
-                depth, conf = model.analyse(i1, i2).depth_map
-            lens = psf_model(b["params"][0])
-            fit = sweep_fit(model.camera, lens, SWEEP_SEED + 100_000 + 1000 * STRUCTURE_LAYOUTS.index(layout) + i,
-                            frames_per_power, chart)
-            true = b["tile_depth"][0, 0].double()
-            keep = (true >= near) & (true <= far)
-            edge = edge_tiles(b["depth"][0, 0], model.tile, model.stride)
-            row = {"layout": layout, "scene": i, "true": true[keep], "edge": edge[keep],
-                   "model": depth[0, 0][keep].double(), "model_conf": conf[0, 0][keep].double(),
-                   "grids": {"keep": keep, "model": depth[0, 0], "model_conf": conf[0, 0]}}
-            for name, stage in _stages(model, scales, fit, lens, stages).items():
-                r = stage(i1, i2, depth, conf, black_level=black_levels(b["params"])[0])
-                row[name] = r.depth[0, 0][keep].double()
-                row[f"{name}_conf"] = r.confidence[0, 0][keep].double()
-                # the whole grid's fits, for A/Bs of the fusion on the same fits (benchmarks.stage_rows.refused)
-                row["grids"].update({f"{name}_{k}": getattr(r, k)[0, 0] for k in FIT_FIELDS})
-                if name == "calibrated" and bias_scales is not None:
-                    d, c = refused(stage, r, depth, conf, bias_scales)
-                    row[BIAS_STAGE], row[f"{BIAS_STAGE}_conf"] = d[0, 0][keep].double(), c[0, 0][keep].double()
-            if bound:
-                fisher = tile_fisher(model.camera, b["sharp"][0, 0], true, b["params"][0])
-                fisher[edge] = 0.0  # no reference at edges; they teach nothing about the shared PSF either
-                rel = depth_variances(fisher, prior_var)["tile_shared"].sqrt() * true
-                row["bound_shared"] = torch.where(edge, torch.full_like(rel, math.nan), rel)[keep]
-            out.append(row)
-    return out
 
 
 def _plain(value: object) -> object:

@@ -63,7 +63,8 @@ def refuse_planes(rows: list[dict], confidence_scale: float, calibrated: Likelih
             if scales is None:
                 continue
             try:
-                q_fit, sigma, slope = (r[f"{fits}_{k}"].reshape(side, side) for k in ("fit_q", "fit_sigma_raw", "slope"))
+                q_fit, sigma, slope = (r[f"{fits}_{k}"].reshape(side, side)
+                                       for k in ("fit_q", "fit_sigma_raw", "slope"))
             except KeyError as e:
                 raise ValueError(f"plane {r.get('index')} has no {fits} fits to fuse again ({e})") from e
             d, c = refuse(torch.ones(side, side, dtype=torch.bool), 1.0 / q_fit, sigma, slope, 1.0 / q_model, conf,

@@ -30,23 +30,26 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Iterator
 
 import torch
 
 from benchmarks.bench_bound import median_at_bound
-from benchmarks.bench_psf_model import BIAS_STAGE, SWEEP_CHART, SWEEP_CHARTS, structure_rows
 from benchmarks.bench_structure import (BOOTSTRAP_REPS, CONF, SCENE_ID_STEP, STRUCTURE_SEED, judge_over_scenes,
                                         largest_share, scene_intervals)
 from benchmarks.depth_models import predicted_scale
+from benchmarks.psf_stages import BIAS_STAGE, structure_rows
 from benchmarks.report import ROOT, machine, markdown_table, repo_path, update_section
 from benchmarks.stage_rows import refuse
 from benchmarks.stage_uncertainty import decile_summary, relative_inverse_depth_error
 from benchmarks.uncertainty import decile_table, plot_calibration, resample_scenes
 from tdfd.dfd.inverse_variance import LikelihoodScales
 from tdfd.model import DFDModel
+from training.calibrated_lens import SWEEP_CHART, SWEEP_CHARTS
 from training.data import STRUCTURE_LAYOUTS
 
-__all__ = ["ESTIMATORS", "merge_scenes", "refuse_rows", "target_rows", "difference_rows", "bound_rows", "confidence_rows", "main"]
+__all__ = ["ESTIMATORS", "merge_scenes", "refuse_rows", "target_rows", "difference_rows", "bound_rows",
+           "confidence_rows", "main"]
 
 #: the estimators scored, in the tables' order
 ESTIMATORS = ("model", "calibrated", BIAS_STAGE)
@@ -57,7 +60,7 @@ FIGURE = ROOT / "docs" / "psf_structure_calibration.png"
 
 
 def merge_scenes(rows: list[dict], layouts: tuple[str, ...] = STRUCTURE_LAYOUTS) -> dict[str, torch.Tensor]:
-    """The rows of :func:`benchmarks.bench_psf_model.structure_rows` (``layouts``' scenes) as one
+    """The rows of :func:`benchmarks.psf_stages.structure_rows` (``layouts``' scenes) as one
     set of flat tensors, with ``scene`` unique across layouts and ``layout`` the layout's index.
 
     Raises:
@@ -99,6 +102,14 @@ def refuse_rows(rows: list[dict], confidence_scale: float, scales: LikelihoodSca
     return out
 
 
+def _groups(rows: list[dict]) -> Iterator[tuple[str, dict[str, torch.Tensor]]]:
+    """Each layout that ``rows`` hold, then all layouts: its name and its tiles (:func:`merge_scenes`)."""
+    groups = [(layout, (layout,)) for layout in STRUCTURE_LAYOUTS] + [("all layouts", STRUCTURE_LAYOUTS)]
+    for name, layouts in groups:
+        if any(r["layout"] in layouts for r in rows):
+            yield name, merge_scenes(rows, layouts)
+
+
 def _sets(t: dict[str, torch.Tensor]) -> tuple[tuple[str, torch.Tensor], ...]:
     return (("away from edges", ~t["edge"]), ("all tiles", torch.ones_like(t["edge"])))
 
@@ -118,11 +129,7 @@ def target_rows(rows: list[dict], estimators: tuple[str, ...] = ESTIMATORS, reps
     there, and issue 19's verdict on each (:func:`benchmarks.bench_structure.judge_over_scenes`;
     the share's median judged without an interval, as section ``structure`` does)."""
     out = []
-    groups = [(layout, (layout,)) for layout in STRUCTURE_LAYOUTS] + [("all layouts", STRUCTURE_LAYOUTS)]
-    for name, layouts in groups:
-        if not any(r["layout"] in layouts for r in rows):
-            continue
-        t = merge_scenes(rows, layouts)
+    for name, t in _groups(rows):
         for label, sel in _sets(t):
             for k in estimators:
                 e, c = _error(t, k)[sel], t[f"{k}_conf"][sel]
@@ -167,18 +174,15 @@ def bound_rows(rows: list[dict], estimators: tuple[str, ...] = ESTIMATORS) -> li
     over it, and the largest share of the tiles, the most confident first, whose median error is
     <= 1 % (:func:`benchmarks.bench_structure.largest_share`; at the bound ranked by the bound)."""
     out = []
-    groups = [(layout, (layout,)) for layout in STRUCTURE_LAYOUTS] + [("all layouts", STRUCTURE_LAYOUTS)]
-    for name, layouts in groups:
-        if not any(r["layout"] in layouts for r in rows):
-            continue
-        t = merge_scenes(rows, layouts)
+    for name, t in _groups(rows):
         sel = ~t["edge"] & torch.isfinite(t["bound_shared"])
         if not bool(sel.any()):
             continue
         bound = t["bound_shared"][sel]
         at_bound = median_at_bound(bound)
         by_bound = bound.sort().values
-        cells = [_pct(at_bound), f"{100 * largest_share(lambda k: median_at_bound(by_bound[:k]), by_bound.numel(), CONFIDENT_LIMIT):.0f} %"]
+        share_at_bound = largest_share(lambda k: median_at_bound(by_bound[:k]), by_bound.numel(), CONFIDENT_LIMIT)
+        cells = [_pct(at_bound), f"{100 * share_at_bound:.0f} %"]
         for k in estimators:
             e = _error(t, k)[sel]
             ranked = e[torch.argsort(t[f"{k}_conf"][sel], descending=True, stable=True)]

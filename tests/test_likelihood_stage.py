@@ -388,7 +388,8 @@ def test_the_fused_scales_slope_part_round_trips_and_needs_the_slope(tmp_path):
                                    dict(fused_log_b=(-3.0, -5.0), fused_log_b_calibrated=(-4.0, -3.0)),  # not increasing
                                    dict(fused_log_b=(-5.0,), fused_log_b_calibrated=(-4.0,)),  # one knot
                                    dict(fused_log_b=(-5.0, math.nan), fused_log_b_calibrated=(-4.0, -3.0)),
-                                   dict(fused_log_slope=(-5.0, -3.0), fused_slope_log_shift=(0.0, 1.0)),  # no scale part
+                                   # a slope part without a scale part
+                                   dict(fused_log_slope=(-5.0, -3.0), fused_slope_log_shift=(0.0, 1.0)),
                                    dict(fused_log_b=(-5.0, -3.0), fused_log_b_calibrated=(-4.0, -3.0),
                                         fused_log_slope=(-5.0, -3.0)),  # one of the slope pair
                                    dict(fused_log_b=(-5.0, -3.0), fused_log_b_calibrated=(-4.0, -3.0),

@@ -38,8 +38,8 @@ import torch
 from ..errors import InputError, ModelError
 from ..knot_map import calibrate_log_scale, knot_pairs, piecewise_linear, validate_knots
 
-__all__ = ["MEDIAN_ABS_NORMAL", "SCALES_FORMAT", "SCALES_PSF", "SLOPE_FLOOR", "model_sigma", "confidence_from_sigma", "sigma_factor",
-           "fuse", "LikelihoodScales", "tile_slope"]
+__all__ = ["MEDIAN_ABS_NORMAL", "SCALES_FORMAT", "SCALES_PSF", "SLOPE_FLOOR", "model_sigma", "confidence_from_sigma",
+           "sigma_factor", "fuse", "LikelihoodScales", "tile_slope"]
 
 #: The median of ``|x|`` for a standard normal ``x``.
 MEDIAN_ABS_NORMAL = 0.6744897501960817
