@@ -340,9 +340,9 @@ def main(argv: list[str] | None = None) -> int:
         fitted = fit_fused_scale_map(fused_err, fused_b, fitted, bins, errors["slope"],
                                      slope_bins if slope_bins >= 2 else 0)
     wall = time.perf_counter() - t0
-    counts = [int((errors["set"] == k).sum()) for k in range(4)]
-    stated = fitted.fused_scale(fused_b, errors["slope"])
     sets = [(name, errors["set"] == k) for k, name in enumerate(("planes", "slanted", "layout", "smooth"))]
+    counts = {name: int(sel.sum()) for name, sel in sets}
+    stated = fitted.fused_scale(fused_b, errors["slope"])
     bands = fitted.band(errors["slope"])
     f_fit, f_model = fitted.factors(errors["slope"])
     biases = (image_biases(errors, f_fit, f_model, fitted.bias_radius) if fitted.shared_bias
@@ -365,8 +365,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"({args.calibrated_psf} frame(s) per power, "
                 f"seed {CALIBRATION_SWEEP_SEED} + 100000 x set + scene; training.calibrated_lens)"
                 if args.calibrated_psf else "profiled over every shape"),
-        "tiles": {"planes": counts[0], "slanted": counts[1], "layout": counts[2],
-                                                    "smooth": counts[3]},
+        "tiles": counts,
         "median_abs_error": {"fit": float(errors["fit_error"].abs().median()),
                              "model": float(errors["model_error"].abs().median()),
                              "model_without_bias": float(model_error_without_bias(errors, biases).abs().median()),
@@ -388,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
     logger.info("fit sigma factors %s, model sigma factors %s (slope bands at %s, %s tiles) on %d tiles (%s); fused "
                 "scale's decile ratios (most confident last) %s before its map, %s after; %.0f s; wrote %s",
                 [round(x, 4) for x in fitted.fit], [round(x, 4) for x in fitted.model], fitted.slope_edges,
-                provenance["tiles_per_slope_band"], sum(counts), provenance["tiles"],
+                provenance["tiles_per_slope_band"], sum(counts.values()), provenance["tiles"],
                 provenance["fused_decile_ratios_most_confident_last"]["before_map"],
                 provenance["fused_decile_ratios_most_confident_last"]["after_map"], wall, path)
     return 0

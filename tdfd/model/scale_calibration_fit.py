@@ -138,10 +138,13 @@ def fit_scale_calibration(scale: torch.Tensor, error: torch.Tensor, bins: int = 
     return kb, torch.cummax(kb + f, 0).values
 
 
-def _fit_depth(q: torch.Tensor, log_b: torch.Tensor, e: torch.Tensor, bins: int, smooth: int
+def _fit_depth(q: torch.Tensor, log_b: torch.Tensor, e: torch.Tensor, bins: int, smooth: int,
+               tied: str = "depth bins with equal median inverse depth: fewer depth bins, or depths that vary"
                ) -> tuple[torch.Tensor, torch.Tensor]:
-    medians, log_f = _band_factors(q, log_b.exp(), e, bins, "depth bins with equal median inverse depth: fewer depth "
-                                   "bins, or depths that vary")
+    """A covariate part's knots (the depth's, or any covariate ``q``'s): the bands' median ``q`` and
+    their log factors with ``log_b`` applied, smoothed over ``smooth`` bands; ``tied`` the error for
+    bands with equal medians."""
+    medians, log_f = _band_factors(q, log_b.exp(), e, bins, tied)
     return torch.tensor(medians, dtype=torch.float64), _moving_average(torch.tensor(log_f, dtype=torch.float64), smooth)
 
 
@@ -290,10 +293,8 @@ def fit_covariate_calibration(scale: torch.Tensor, error: torch.Tensor, covariat
     log_b, g = b.log(), torch.zeros_like(b)
     for _ in range(rounds):
         kb, kc = fit_scale_calibration(b, e / g.exp(), bins=bins, smooth=smooth)
-        medians, log_f = _band_factors(x, calibrate_log_scale(log_b, kb, kc).exp(), e, covariate_bins,
-                                       "covariate bands with equal medians: fewer bands, or a covariate that varies")
-        kx, ky = torch.tensor(medians, dtype=torch.float64), _moving_average(torch.tensor(log_f, dtype=torch.float64),
-                                                                             smooth)
+        kx, ky = _fit_depth(x, calibrate_log_scale(log_b, kb, kc), e, covariate_bins, smooth,
+                            "covariate bands with equal medians: fewer bands, or a covariate that varies")
         g = piecewise_linear(x, kx, ky)
     c = float(g.median())
     return kb, kc + c, kx, ky - c
