@@ -3,7 +3,8 @@ r"""Issue 19's structure targets for the likelihood stage told each lens's PSF f
 Run from the repository root::
 
     .venv/bin/python -m benchmarks.bench_psf_structure [--scenes 128] [--frames-per-power 2]
-        [--sweep-chart dead_leaves] [--scales S.json] [--bias-scales S.json] [--no-write] [--rows R.pt]
+        [--sweep-chart dead_leaves] [--scales S.json] [--bias-scales S.json] [--walk N] [--no-write]
+        [--rows R.pt] [--from-rows R.pt]
 
 The structure benchmark's scenes (section ``structure``: 480x640, seed 53000017, slanted planes,
 piecewise-planar layouts with occlusion edges, smooth surfaces; the whole world), each scene's
@@ -20,7 +21,8 @@ Reports issue 19's three structure targets per layout and estimator (median erro
 tiles away from occlusion edges and on all tiles, each judged over a bootstrap of the scenes
 (:func:`benchmarks.bench_structure.judge_over_scenes`); the paired differences between the
 estimators over the scenes; the Cramér-Rao reference of section ``structure`` on the same tiles
-(away from edges; the ratio issue 19 reports); and each confidence per decile (observed /
+(away from edges; the ratio issue 19 reports); the same scored apart on the informative and the
+information-poor scenes (:mod:`benchmarks.scene_information`); and each confidence per decile (observed /
 predicted median error within 20 %, the deciles of section ``uncertainty``), plotted in
 ``docs/psf_structure_calibration.png``. Writes section ``psf_structure`` of docs/BENCHMARKS.md.
 """
@@ -40,6 +42,7 @@ from benchmarks.bench_structure import (BOOTSTRAP_REPS, CONF, SCENE_ID_STEP, STR
 from benchmarks.depth_models import predicted_scale
 from benchmarks.psf_stages import BIAS_STAGE, structure_rows
 from benchmarks.report import ROOT, machine, markdown_table, repo_path, update_section
+from benchmarks.scene_information import POOR_SCENE_STD, information_rows, plane_pooled_std
 from benchmarks.stage_rows import refuse
 from benchmarks.stage_uncertainty import decile_summary, relative_inverse_depth_error
 from benchmarks.uncertainty import decile_table, plot_calibration, resample_scenes
@@ -48,8 +51,8 @@ from tdfd.model import DFDModel
 from training.calibrated_lens import SWEEP_CHART, SWEEP_CHARTS
 from training.data import STRUCTURE_LAYOUTS
 
-__all__ = ["ESTIMATORS", "merge_scenes", "refuse_rows", "target_rows", "difference_rows", "bound_rows",
-           "confidence_rows", "main"]
+__all__ = ["ESTIMATORS", "merge_scenes", "refuse_rows", "with_plane_pooled", "target_rows", "difference_rows",
+           "bound_rows", "information_table", "confidence_rows", "main"]
 
 #: the estimators scored, in the tables' order
 ESTIMATORS = ("model", "calibrated", BIAS_STAGE)
@@ -98,6 +101,28 @@ def refuse_rows(rows: list[dict], confidence_scale: float, scales: LikelihoodSca
             d, c = refuse(g["calibrated_fitted"], g["calibrated_depth_fit"], g["calibrated_sigma_fit_raw"],
                           g["calibrated_slope"], g["model"], g["model_conf"], confidence_scale, sc)
             row[name], row[f"{name}_conf"] = d[g["keep"]].double(), c[g["keep"]].double()
+        out.append(row)
+    return out
+
+
+def with_plane_pooled(rows: list[dict], overlap: float) -> list[dict]:
+    """``rows`` with ``plane_pooled``: on the slanted scenes each tile's reference for an estimator
+    told the scene is one plane (:func:`benchmarks.scene_information.plane_pooled_std` of the tiles'
+    ``bound_shared`` at their places in ``grids["keep"]``), ``nan`` on the other layouts.
+
+    Raises:
+        ValueError: a row without ``bound_shared`` (a run without the bound).
+    """
+    out = []
+    for r in rows:
+        if "bound_shared" not in r:
+            raise ValueError(f"row {r.get('layout')} {r.get('scene')} has no Cramér-Rao reference (bound_shared)")
+        row = dict(r)
+        if r["layout"] == "slanted":
+            ii, jj = r["grids"]["keep"].nonzero(as_tuple=True)
+            row["plane_pooled"] = plane_pooled_std(r["bound_shared"], 1.0 / r["true"].double(), ii, jj, overlap)
+        else:
+            row["plane_pooled"] = torch.full_like(r["true"].double(), float("nan"))
         out.append(row)
     return out
 
@@ -192,6 +217,11 @@ def bound_rows(rows: list[dict], estimators: tuple[str, ...] = ESTIMATORS) -> li
     return out
 
 
+def information_table(rows: list[dict], estimators: tuple[str, ...] = ESTIMATORS) -> list[list[object]]:
+    """:func:`benchmarks.scene_information.information_rows` of each layout (and all) of ``rows``."""
+    return information_rows(list(_groups(rows)), estimators, CONF)
+
+
 def confidence_rows(rows: list[dict], confidence_scale: float, estimators: tuple[str, ...] = ESTIMATORS,
                     reps: int = 100) -> tuple[list[list[object]], dict[str, list[dict]]]:
     """Each estimator's confidence per decile on every layout's scenes together, all tiles and away
@@ -221,14 +251,18 @@ def main(argv: list[str] | None = None) -> int:
                                                 "(default: MODEL.likelihood-calibrated.json)")
     p.add_argument("--bias-scales", default="", help="the scales that remove the model's bias "
                                                      "(default: MODEL.likelihood-calibrated-bias.json)")
+    p.add_argument("--walk", type=int, default=0, metavar="N",
+                   help="let the stage move a window whose minimum lies on its edge up to N times (default 0)")
     p.add_argument("--no-write", action="store_true", help="print only; leave docs/ alone")
     p.add_argument("--rows", default="", help="also save every scene's tiles and fits (torch.save)")
     p.add_argument("--from-rows", default="", metavar="PATH",
                    help="score the fits a run saved with --rows, fused again with --scales and --bias-scales, "
                         "instead of running the sweeps and the stage (the fits do not depend on the scales)")
     args = p.parse_args(argv)
-    if not 1 <= args.scenes <= 1000 or args.frames_per_power < 1:
-        p.error("need 1 <= --scenes <= 1000 and --frames-per-power >= 1")
+    if not 1 <= args.scenes <= 1000 or args.frames_per_power < 1 or args.walk < 0:
+        p.error("need 1 <= --scenes <= 1000, --frames-per-power >= 1 and --walk >= 0")
+    if args.walk and args.from_rows:
+        p.error("--from-rows fuses saved fits again; --walk needs new fits")
     torch.set_num_threads(2)
     model = DFDModel.load(args.model)
     paths = (args.scales or f"{args.model}.likelihood-calibrated.json",
@@ -242,10 +276,11 @@ def main(argv: list[str] | None = None) -> int:
         rows = refuse_rows(rows, model.confidence_scale, scales, bias_scales)
     else:  # the profiled stage's scales are not used: only the calibrated stage runs
         rows = structure_rows(model, (scales, scales), args.scenes, args.frames_per_power, args.sweep_chart,
-                              bias_scales, stages=("calibrated",), bound=True)
+                              bias_scales, stages=("calibrated",), bound=True, walk=args.walk)
     wall = time.perf_counter() - t0
     if args.rows:
         torch.save(rows, args.rows)
+    rows = with_plane_pooled(rows, (model.tile / model.stride) ** 2)
     calibration, tables = confidence_rows(rows, model.confidence_scale)
     if not args.no_write:
         plot_calibration(tables, FIGURE, f"Structure scenes ({args.scenes} per layout): confidence per decile")
@@ -255,6 +290,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{STRUCTURE_SEED}, the whole world; the tiles in the working range; *away from edges* as in section "
         f"`structure`); wall time {wall:.0f} s"
         + (" (the fits a full run saved, fused again with these scales: `--from-rows`)" if args.from_rows else "")
+        + (f"; the stage's windows walk up to {args.walk} times" if args.walk else "")
         + ". Each scene's lens calibrated from its own simulated sweep "
         f"(`{args.sweep_chart}` chart, {args.frames_per_power} frame(s) per power: section `psf_model`'s sweeps). "
         f"`model`: the shipped model's pooled map; `calibrated`: the likelihood stage told the sweep's PSF, scales "
@@ -281,6 +317,18 @@ def main(argv: list[str] | None = None) -> int:
         markdown_table(["layout", "tiles", "at the bound", "at the bound: share <= 1 %", *ESTIMATORS],
                        bound_rows(rows)),
         "",
+        "By the information the scenes hold (away from edges): a scene is *information-poor* when the median of "
+        f"its tiles' Cramér-Rao reference exceeds {100 * POOR_SCENE_STD:.2f} % (an unbiased estimator at the bound "
+        "would have a median error above 2 % there; `benchmarks/scene_information.py`). Per group the scenes, the "
+        "tiles (share of the layout's), the score at the bound and, on the slanted scenes, at the reference for "
+        "an estimator told the scene is one plane (the tiles' information pooled under that model, overlapping "
+        "tiles counted once: a rough limit); per estimator the median error; the share of the tiles within 2 %; "
+        "the share at confidence >= 0.5; the median over the scenes of |the scene's median signed error| (the "
+        "part its tiles share):",
+        "",
+        markdown_table(["layout", "scenes", "count", "tiles (share)", "at the bound", "at the bound, one plane told",
+                        *ESTIMATORS], information_table(rows)),
+        "",
         "The confidence as an uncertainty (observed / predicted median error within 20 % in every confidence "
         "decile; every layout's scenes together, 100 resamples of the scenes"
         + (f"; plot `{repo_path(FIGURE)}`" if not args.no_write else "") + "):",
@@ -293,7 +341,8 @@ def main(argv: list[str] | None = None) -> int:
         cmd = (f".venv/bin/python -m benchmarks.bench_psf_structure --scenes {args.scenes} "
                f"--frames-per-power {args.frames_per_power} --sweep-chart {args.sweep_chart}"
                + (f" --scales {args.scales}" if args.scales else "")
-               + (f" --bias-scales {args.bias_scales}" if args.bias_scales else ""))
+               + (f" --bias-scales {args.bias_scales}" if args.bias_scales else "")
+               + (f" --walk {args.walk}" if args.walk else ""))
         update_section("psf_structure", "Structure targets with each lens's PSF measured from a focus sweep "
                                         "(issue 19)", body, cmd)
     return 0

@@ -5,7 +5,7 @@ r"""``tdfd depth``: depth from a DFD pair of image files with the exported ONNX 
     tdfd depth IMAGE_F1 IMAGE_F2 [--model M] [-o depth.npy|.tiff|.png] [--white-level L]
                [--full-resolution] [--threshold C] [--centre FRACTION] [--threads T]
                [--psf-family gaussian|pillbox|unknown|CAM.json] [--tiles]
-               [--likelihood-stage SCALES.json [--black-level DN] [--psf-model CAM.json]]
+               [--likelihood-stage SCALES.json [--black-level DN] [--psf-model CAM.json] [--likelihood-walk N]]
 
 Reads single-channel 8- or 16-bit PNG/TIFF frames (or float32 TIFF in [0, 1]) with OpenCV
 (``IMREAD_UNCHANGED``), runs :class:`tdfd.runtime.DepthRuntime` (no torch), prints a
@@ -84,6 +84,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--psf-model", default=None, metavar="CAM.json",
                    help="a camera JSON from 'tdfd calibrate --psf-model': the lens's whole PSF measured from a focus "
                         "sweep, the likelihood stage's one PSF (default: profiled over the family's shapes)")
+    p.add_argument("--likelihood-walk", type=int, default=0, metavar="N",
+                   help="for --likelihood-stage: let a tile whose fit finds no minimum within 5 %% of the model's "
+                        "depth move its search window up to N times (default 0; section psf_structure's notes)")
     p.add_argument("--psf-family", default="exported", metavar="FAMILY",
                    help="the lens's PSF family the model's CNN is told: gaussian, pillbox, unknown, a camera JSON "
                         "from 'tdfd calibrate' (its measured psf_family), or exported (default: the family the ONNX "
@@ -298,6 +301,9 @@ def run(args: argparse.Namespace) -> int:
     res = rt(f1, f2, white_level=args.white_level, pooled=not args.tiles)
     if args.psf_model and not args.likelihood_stage:
         raise InputError("--psf-model is the likelihood stage's PSF; give --likelihood-stage SCALES.json too")
+    if args.likelihood_walk and not args.likelihood_stage:
+        raise InputError("--likelihood-walk moves the likelihood stage's windows; give --likelihood-stage "
+                         "SCALES.json too")
     if args.likelihood_stage:
         if args.tiles:
             raise InputError("--likelihood-stage refines the depth map; it cannot be combined with --tiles")
@@ -306,7 +312,8 @@ def run(args: argparse.Namespace) -> int:
         white = args.white_level if args.white_level is not None else (
             float(np.iinfo(f1.dtype).max) if np.issubdtype(f1.dtype, np.integer) else 1.0)
         stage = stage_for_runtime(rt, args.likelihood_stage, args.black_level / white,
-                                  psf_model=measured_psf_model(args.psf_model) if args.psf_model else None)
+                                  psf_model=measured_psf_model(args.psf_model) if args.psf_model else None,
+                                  walk=args.likelihood_walk)
         res = refine_result(rt, stage, f1, f2, res, args.white_level)
     h, w = res.depth.shape
     valid = res.valid(args.threshold)

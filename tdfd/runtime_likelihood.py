@@ -42,7 +42,7 @@ _SCALES_HINT = {"measured": "fit the scales with --calibrated-psf, or use the sh
 
 
 def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: float = 0.0,
-                      psf_model: dict | None = None) -> LikelihoodStage:
+                      psf_model: dict | None = None, walk: int = 0) -> LikelihoodStage:
     """The likelihood stage for ``rt``'s file: its camera, grid, confidence scale and told family.
 
     Args:
@@ -53,9 +53,12 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
             ``tdfd calibrate --psf-model``): the stage's one hypothesis instead of the family's.
             Scales fitted for the other case (:attr:`~tdfd.dfd.inverse_variance.LikelihoodScales.psf`)
             are used with a warning.
+        walk: how many times a fit whose minimum lies on its window's edge may move its window
+            (:func:`~tdfd.dfd.seeded_fit.seeded_tile_fit`; 0: never).
 
     Raises:
-        InputError: a file with focus breathing, a runtime for another camera, a bad black level.
+        InputError: a file with focus breathing, a runtime for another camera, a bad black level
+            or ``walk``.
         CameraError: a ``psf_model`` that is not valid.
         ModelError: a scales file that cannot be read, or a file without a positive
             ``confidence_scale`` in its metadata.
@@ -78,7 +81,7 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
         log.warning("%s was fitted for the stage with the PSF %s, this one has it %s: the fusion's weights and "
                     "confidences will be off (%s)", scales_path, scales.psf, told, _SCALES_HINT[told])
     return LikelihoodStage(rt.camera, rt.tile, rt.stride, float(b0), scales=scales,
-                           family=rt.psf_family, hypotheses=hypotheses, black_level=black_level)
+                           family=rt.psf_family, hypotheses=hypotheses, black_level=black_level, walk=walk)
 
 
 def refine_result(rt: DepthRuntime, stage: LikelihoodStage, image_f1: np.ndarray, image_f2: np.ndarray,

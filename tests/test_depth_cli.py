@@ -290,6 +290,15 @@ def test_likelihood_stage_refines_the_map_and_keeps_problems(plane_pairs, shippe
     rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--likelihood-stage", scales,
                       "--black-level", "5000")
     _one_line_error(rc, err, "black level")
+    # --likelihood-walk: the same plane's depth (the model is within its windows), and only with the stage
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--threshold", "0",
+                      "--likelihood-stage", scales, "--likelihood-walk", "3", "-o", tmp_path / "walk.npy")
+    assert rc == 0, err
+    assert abs(float(np.median(np.load(tmp_path / "walk.npy")[1:-1, 1:-1])) - truth) / truth < 0.03
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--likelihood-walk", "3")
+    _one_line_error(rc, err, "--likelihood-walk")
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--likelihood-stage", scales, "--likelihood-walk", "-1")
+    _one_line_error(rc, err, "walk")
 
 
 def test_likelihood_stage_takes_the_measured_psf_model(plane_pairs, shipped_onnx, tmp_path, capsys, caplog):

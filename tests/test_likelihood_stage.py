@@ -124,6 +124,30 @@ def test_the_seeded_fit_finds_a_rendered_planes_depth_and_psf_without_the_noise(
     # a seed whose window misses the truth: the minimum on the window's edge carries no weight
     far = seeded_tile_fit(y1, y2, CAM, origins, 64, seed * 1.2, [true_hyp])
     assert bool(torch.isinf(far.sigma_q).all())
+    # walking the window downhill reaches the truth from 24 % off (the window is +-5 %), from either side
+    for off in (1.2, 1.03 / 1.24 / 1.03):
+        walked = seeded_tile_fit(y1, y2, CAM, origins, 64, seed * off, [true_hyp], walk=5)
+        assert float((walked.q * depth - 1.0).abs().max()) < 0.005, off
+        assert bool(torch.isfinite(walked.sigma_q).all())
+    # too few moves: still on an edge, still no weight; a tile already inside is left alone
+    short = seeded_tile_fit(y1, y2, CAM, origins, 64, seed * 1.2, [true_hyp], walk=1)
+    assert bool(torch.isinf(short.sigma_q).all())
+    near = seeded_tile_fit(y1, y2, CAM, origins, 64, seed, [true_hyp], walk=3)
+    torch.testing.assert_close(near.q, seeded_tile_fit(y1, y2, CAM, origins, 64, seed, [true_hyp]).q)
+    # a walked minimum that gains less than walk_gain over the first window's edge keeps no weight
+    strict = seeded_tile_fit(y1, y2, CAM, origins, 64, seed * 1.2, [true_hyp], walk=5, walk_gain=1e9)
+    torch.testing.assert_close(strict.q, far.q)
+    assert bool(torch.isinf(strict.sigma_q).all())
+    with pytest.raises(InputError, match="walk_gain"):
+        seeded_tile_fit(y1, y2, CAM, origins, 64, seed, [true_hyp], walk=1, walk_gain=-1.0)
+    # only the tiles let walk move
+    let = torch.tensor([True, False, True, False])
+    some = seeded_tile_fit(y1, y2, CAM, origins, 64, seed * 1.2, [true_hyp], walk=5, walk_tiles=let)
+    assert torch.isfinite(some.sigma_q).tolist() == let.tolist()
+    with pytest.raises(InputError, match="walk"):
+        seeded_tile_fit(y1, y2, CAM, origins, 64, seed, [true_hyp], walk=-1)
+    with pytest.raises(InputError, match="walk_tiles"):
+        seeded_tile_fit(y1, y2, CAM, origins, 64, seed, [true_hyp], walk=1, walk_tiles=let[:2])
 
 
 def test_model_sigma_and_confidence_invert_each_other():
@@ -250,6 +274,8 @@ def test_the_stage_rejects_bad_input_with_typed_errors():
         likelihood_stage(i1, i1, d, c, CAM, black_level=2.0, **kw)
     with pytest.raises(InputError, match="band"):
         LikelihoodStage(CAM, band=0.9)
+    with pytest.raises(InputError, match="walk"):
+        LikelihoodStage(CAM, walk=-2)
 
 
 def test_scales_keep_the_shared_bias_flag_and_read_version_1(tmp_path):

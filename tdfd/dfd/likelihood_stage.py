@@ -177,7 +177,7 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
                      camera: Camera, *, tile: int, stride: int, confidence_scale: float,
                      scales: LikelihoodScales = LikelihoodScales(), hypotheses: tuple[PsfHypothesis, ...] | None = None,
                      black_level: float = 0.0, seed_window: float = SEED_WINDOW, q_step: float = Q_STEP,
-                     band: float = 0.25, max_kernel: int = 65, profile_tiles: int = PROFILE_TILES
+                     band: float = 0.25, max_kernel: int = 65, profile_tiles: int = PROFILE_TILES, walk: int = 0
                      ) -> LikelihoodStageResult:
     """The model's depth map refined by each tile's likelihood fit (see the module documentation).
 
@@ -191,8 +191,10 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
         hypotheses: the PSFs to profile over; ``None``: every shape
             (:func:`~tdfd.dfd.psf_hypotheses.psf_hypotheses` of an unknown family).
         black_level: the frames' black level, in their units.
-        seed_window, q_step, band, max_kernel, profile_tiles: see
-            :func:`~tdfd.dfd.seeded_fit.seeded_tile_fit` (the model's most confident tiles choose the PSF).
+        seed_window, q_step, band, max_kernel, profile_tiles, walk: see
+            :func:`~tdfd.dfd.seeded_fit.seeded_tile_fit` (the model's most confident tiles choose the PSF;
+            ``walk`` moves a window whose minimum lies on its edge, on the tiles whose model
+            sigma reaches past the window at two sigmas: the model's confident tiles keep theirs).
 
     Returns:
         :class:`LikelihoodStageResult`.
@@ -232,7 +234,8 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
         seed = 1.0 / depth[k, 0, ii, jj].to(torch.float64)
         slope = tile_slope(1.0 / depth[k, 0].to(torch.float64))[ii, jj]
         fit = seeded_tile_fit(y1, y2, camera, origins, tile, seed, hyps, window=seed_window, step=q_step, band=band,
-                              max_kernel=max_kernel, profile_tiles=profile_tiles, profile_by=confidence[k, 0, ii, jj])
+                              max_kernel=max_kernel, profile_tiles=profile_tiles, profile_by=confidence[k, 0, ii, jj],
+                              walk=walk, walk_tiles=2.0 * sigma_m[k, 0, ii, jj] > seed_window)
         f_fit, _ = scales.factors(slope)
         q, conf_q, biases[k, 0], _ = fuse_with_fit(seed, sigma_m[k, 0, ii, jj], fit.q, fit.sigma_q, slope, scales,
                                                    confidence_scale, ii, jj, tuple(depth.shape[-2:]))
@@ -262,14 +265,14 @@ class LikelihoodStage(nn.Module):
         hypotheses: the PSFs to profile over instead of the family's, e.g. the one a focus sweep
             measured (:func:`tdfd.calibration.psf_model.psf_model_from_frames`, a camera file's
             ``psf_model``: :meth:`~tdfd.dfd.psf_hypotheses.PsfHypothesis.from_dict`).
-        black_level, seed_window, q_step, band, max_kernel, profile_tiles: as for :func:`likelihood_stage`.
+        black_level, seed_window, q_step, band, max_kernel, profile_tiles, walk: as for :func:`likelihood_stage`.
     """
 
     def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, confidence_scale: float = 0.01, *,
                  scales: LikelihoodScales = LikelihoodScales(), family: str | None = None,
                  wavelength_m: float = WAVELENGTH_M, hypotheses: Sequence[PsfHypothesis] | None = None,
                  black_level: float = 0.0, seed_window: float = SEED_WINDOW, q_step: float = Q_STEP,
-                 band: float = 0.25, max_kernel: int = 65, profile_tiles: int = PROFILE_TILES) -> None:
+                 band: float = 0.25, max_kernel: int = 65, profile_tiles: int = PROFILE_TILES, walk: int = 0) -> None:
         super().__init__()
         self.camera, self.tile, self.stride = camera, int(tile), int(stride)
         self.confidence_scale, self.scales = float(confidence_scale), scales
@@ -280,7 +283,10 @@ class LikelihoodStage(nn.Module):
         else:
             self.hypotheses = psf_hypotheses(camera, family, wavelength_m)
         self.options = dict(black_level=float(black_level), seed_window=float(seed_window), q_step=float(q_step),
-                            band=float(band), max_kernel=int(max_kernel), profile_tiles=int(profile_tiles))
+                            band=float(band), max_kernel=int(max_kernel), profile_tiles=int(profile_tiles),
+                            walk=int(walk))
+        if walk < 0:
+            raise InputError(f"walk must be >= 0, got {walk}")
         inverse_depth_grid(camera, seed_window, q_step)  # bad options fail here, not on the first pair
         if not 0.0 < band <= 0.5:
             raise InputError(f"band must lie in (0, 0.5] cycles/px, got {band}")

@@ -20,6 +20,12 @@ image shares one PSF hypothesis: the one with the least ``sum_t log NLL_min,t`` 
 of tiles of unknown noise, each profiled out) over the :data:`PROFILE_TILES` tiles the caller
 ranks first (the model's most confident); every tile is then fitted with it alone. Only the
 (hypothesis, tile) pairs inside a tile's window are evaluated, each on the tile's own region.
+
+A seed off by more than the window leaves the minimum on the window's edge, and the tile no
+weight. With ``walk`` such a tile's window moves to that edge and is searched again, up to
+``walk`` times, downhill; the walked minimum counts only when its log-likelihood beats the first
+window's edge by :data:`WALK_GAIN` nats (a likelihood that merely drifts from a good seed gains
+little).
 """
 
 from __future__ import annotations
@@ -36,8 +42,8 @@ from ..optics.thin_lens import camera_sigmas
 from .cross_residual import curvature_sigma, independent_bins, parabolic_minima, tile_cross_residual_nll
 from .psf_hypotheses import PsfHypothesis
 
-__all__ = ["SEED_WINDOW", "Q_STEP", "PROFILE_TILES", "inverse_depth_grid", "seed_mask", "kernel_side", "SeededFit",
-           "seeded_tile_fit"]
+__all__ = ["SEED_WINDOW", "Q_STEP", "PROFILE_TILES", "WALK_GAIN", "inverse_depth_grid", "seed_mask", "kernel_side",
+           "SeededFit", "seeded_tile_fit"]
 
 #: The relative half-width of each tile's search around its seed.
 SEED_WINDOW = 0.05
@@ -45,6 +51,11 @@ SEED_WINDOW = 0.05
 Q_STEP = 0.01
 #: The tiles that choose the shared PSF hypothesis (the rest is fitted with it alone).
 PROFILE_TILES = 32
+#: The least log-likelihood gain (nats) of a walked minimum over its first window's edge for it to
+#: count: a seed truly off finds a deep minimum (gains of 30-100 on the structure scenes), while a
+#: likelihood that drifts from a good seed gains little (3-15); see ``docs/BENCHMARKS.md``,
+#: section ``psf_structure``'s notes.
+WALK_GAIN = 20.0
 
 
 def inverse_depth_grid(camera: Camera, window: float = SEED_WINDOW, step: float = Q_STEP) -> torch.Tensor:
@@ -123,7 +134,9 @@ class SeededFit:
 def seeded_tile_fit(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, origins: Sequence[tuple[int, int]], tile: int,
                     seed_q: torch.Tensor, hypotheses: Sequence[PsfHypothesis], *, window: float = SEED_WINDOW,
                     step: float = Q_STEP, band: float = 0.25, max_kernel: int = 65,
-                    profile_tiles: int = PROFILE_TILES, profile_by: torch.Tensor | None = None) -> SeededFit:
+                    profile_tiles: int = PROFILE_TILES, profile_by: torch.Tensor | None = None,
+                    walk: int = 0, walk_tiles: torch.Tensor | None = None, walk_gain: float = WALK_GAIN
+                    ) -> SeededFit:
     """The seeded fit of every tile of one image.
 
     Args:
@@ -139,6 +152,15 @@ def seeded_tile_fit(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, origins:
         profile_tiles: how many tiles choose the shared PSF (then every tile is fitted with it).
         profile_by: ``(T,)`` the tiles' priority for that choice (e.g. the model's confidence;
             ``None``: the first ``profile_tiles``).
+        walk: how many times a tile whose minimum lies on its window's edge has its window
+            moved there and is searched again (0: never). Each move follows the likelihood
+            downhill by up to ``window``, so a seed off by more than the window can still reach
+            an interior minimum; one still on an edge after ``walk`` moves keeps no weight.
+        walk_tiles: ``(T,)`` bool, the tiles that may walk (``None``: all), e.g. those whose
+            seed is uncertain enough to lie off by more than the window.
+        walk_gain: the least gain of the walked minimum's log-likelihood, ``B log(NLL_edge /
+            NLL_min)`` with ``B`` the tile's independent bins, over the first window's edge
+            (:data:`WALK_GAIN`); a walked tile below it keeps its first fit (no weight).
 
     Raises:
         InputError: no hypothesis, seeds not ``(T,)`` finite and > 0, bad options.
@@ -152,13 +174,20 @@ def seeded_tile_fit(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, origins:
         raise ShapeError(f"frames must be two (H, W) of one shape, got {tuple(y1.shape)} and {tuple(y2.shape)}")
     if profile_tiles < 1:
         raise InputError(f"profile_tiles must be >= 1, got {profile_tiles}")
+    if walk < 0:
+        raise InputError(f"walk must be >= 0, got {walk}")
+    if not walk_gain >= 0:
+        raise InputError(f"walk_gain must be >= 0, got {walk_gain}")
+    if walk_tiles is not None and (walk_tiles.shape != (len(origins),) or walk_tiles.dtype != torch.bool):
+        raise InputError(f"walk_tiles must be a ({len(origins)},) bool tensor, got {tuple(walk_tiles.shape)} "
+                         f"{walk_tiles.dtype}")
     grid = inverse_depth_grid(camera, window, step)
     mask = seed_mask(grid, seed_q.to(torch.float64), window)
     size = kernel_side(camera, hypotheses, grid, max_kernel, tile)
     unit = torch.ones(len(origins), dtype=torch.float64)
 
     def minima(hyp: PsfHypothesis, tiles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        sub = torch.zeros_like(mask)
+        sub = torch.zeros_like(mask)  # the current windows (a walk moves some)
         sub[:, tiles] = mask[:, tiles]
         idx = sub.any(1).nonzero().flatten()
         sig = torch.stack([s.reshape(-1) for s in camera_sigmas(camera, 1.0 / grid[idx])], 1).to(torch.float64)
@@ -177,5 +206,22 @@ def seeded_tile_fit(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, origins:
         totals = [float(torch.log(minima(h, chosen)[1].clamp_min(1e-300)).sum()) for h in hypotheses]
         c = min(range(len(hypotheses)), key=totals.__getitem__)
     q, value, curvature = minima(hypotheses[c], every)
-    sigma = curvature_sigma(curvature, independent_bins(tile, band), value)
+    first = (q.clone(), value.clone(), curvature.clone())
+    walked = torch.zeros(len(origins), dtype=torch.bool)
+    for _ in range(walk):
+        k = torch.round((q - grid[0]) / step).long().clamp(0, len(grid) - 1)
+        inside = mask[(k - 1).clamp_min(0), every] & mask[(k + 1).clamp_max(len(grid) - 1), every]
+        edge = ~torch.isfinite(curvature) & ~inside & (k > 0) & (k < len(grid) - 1)
+        if walk_tiles is not None:
+            edge &= walk_tiles
+        if not bool(edge.any()):
+            break
+        moved = edge.nonzero().flatten()
+        walked[moved] = True
+        mask[:, moved] = seed_mask(grid, grid[k[moved]], window)
+        q[moved], value[moved], curvature[moved] = minima(hypotheses[c], moved)
+    bins = independent_bins(tile, band)
+    weak = walked & (bins * torch.log(first[1] / value.clamp_min(1e-300)) < walk_gain)
+    q, value, curvature = (torch.where(weak, a, b) for a, b in zip(first, (q, value, curvature)))
+    sigma = curvature_sigma(curvature, bins, value)
     return SeededFit(q=q, sigma_q=sigma, noise=value, hypothesis=hypotheses[c])
