@@ -61,7 +61,7 @@ from benchmarks.bench_refinement import BENCH_SEED, bench_grids
 from benchmarks.bench_structure import STRUCTURE_SEED
 from benchmarks.bench_tile_oracle import interior_origins
 from benchmarks.psf_stages import BIAS_STAGE, STAGES, SWEEP_SEED, stages_for, structure_rows
-from benchmarks.report import ROOT, comma_choices, machine, markdown_table, repo_path, update_section
+from benchmarks.report import ROOT, comma_choices, given_options, machine, markdown_table, repo_path, update_section
 from benchmarks.stage_rows import refused
 from benchmarks.stage_uncertainty import decile_summary, relative_inverse_depth_error
 from data_synth.params import SynthConfig
@@ -349,9 +349,7 @@ def main(argv: list[str] | None = None) -> int:
         cmd = (f".venv/bin/python -m benchmarks.bench_psf_model --samples {args.samples} --world {world[0]} "
                f"--structure {args.structure} --frames-per-power {args.frames_per_power} "
                f"--sweep-chart {args.sweep_chart}"
-               + (f" --scales {args.scales}" if args.scales else "")
-               + (f" --calibrated-scales {args.calibrated_scales}" if args.calibrated_scales else "")
-               + (f" --bias-scales {args.bias_scales}" if args.bias_scales else ""))
+               + given_options(args, "scales", "calibrated_scales", "bias_scales"))
         update_section("psf_model", "The lens's PSF measured from a focus sweep, the likelihood stage told it "
                                     "(issue 19)", body, cmd)
     return 0

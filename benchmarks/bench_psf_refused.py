@@ -28,7 +28,7 @@ import torch
 
 from benchmarks.bench_psf_model import (BIAS_STAGE, bound_line, confidence_table, family_table, plane_table,
                                         stages_of)
-from benchmarks.report import ROOT, machine, markdown_table, repo_path, update_section
+from benchmarks.report import ROOT, given_options, machine, markdown_table, repo_path, update_section
 from benchmarks.stage_rows import refuse
 from tdfd.dfd.inverse_variance import LikelihoodScales
 from tdfd.model import DFDModel
@@ -130,8 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     print(body)
     if not args.no_write:
         cmd = (f".venv/bin/python -m benchmarks.bench_psf_refused --rows {args.rows}"
-               + (f" --calibrated-scales {args.calibrated_scales}" if args.calibrated_scales else "")
-               + (f" --bias-scales {args.bias_scales}" if args.bias_scales else ""))
+               + given_options(args, "calibrated_scales", "bias_scales"))
         update_section("psf_model_refused", "Section psf_model's plane fits fused with the scales files as they are "
                                             "(issue 19)", body, cmd)
     return 0

@@ -41,7 +41,7 @@ from benchmarks.bench_structure import (BOOTSTRAP_REPS, CONF, SCENE_ID_STEP, STR
                                         largest_share, scene_intervals)
 from benchmarks.depth_models import predicted_scale
 from benchmarks.psf_stages import BIAS_STAGE, structure_rows
-from benchmarks.report import ROOT, machine, markdown_table, repo_path, update_section
+from benchmarks.report import ROOT, given_options, machine, markdown_table, repo_path, update_section
 from benchmarks.scene_information import POOR_SCENE_STD, information_rows, plane_pooled_std
 from benchmarks.stage_rows import refuse
 from benchmarks.stage_uncertainty import decile_summary, relative_inverse_depth_error
@@ -340,9 +340,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_write:
         cmd = (f".venv/bin/python -m benchmarks.bench_psf_structure --scenes {args.scenes} "
                f"--frames-per-power {args.frames_per_power} --sweep-chart {args.sweep_chart}"
-               + (f" --scales {args.scales}" if args.scales else "")
-               + (f" --bias-scales {args.bias_scales}" if args.bias_scales else "")
-               + (f" --walk {args.walk}" if args.walk else ""))
+               + given_options(args, "scales", "bias_scales", "walk"))
         update_section("psf_structure", "Structure targets with each lens's PSF measured from a focus sweep "
                                         "(issue 19)", body, cmd)
     return 0

@@ -80,6 +80,17 @@ def repo_path(path: str | Path) -> str:
     return str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else str(path)
 
 
+def given_options(args: argparse.Namespace, *names: str) -> str:
+    """The command-line options ``names`` (attribute names of ``args``) that were given a value, as
+    `` --the-name VALUE`` each, in order (what a section's Reproduce line echoes).
+
+    Example:
+        >>> given_options(argparse.Namespace(scales="s.json", bias_scales="", walk=4), "scales", "bias_scales", "walk")
+        ' --scales s.json --walk 4'
+    """
+    return "".join(f" --{n.replace('_', '-')} {getattr(args, n)}" for n in names if getattr(args, n))
+
+
 def with_model_option(command: str, model: str | Path) -> str:
     """``command`` plus ``--model MODEL`` unless ``model`` is the shipped ``models/reference``."""
     if Path(model).resolve() == (ROOT / "models" / "reference").resolve():
