@@ -4,7 +4,7 @@ Run from the repository root::
 
     .venv/bin/python -m benchmarks.bench_psf_structure [--scenes 128] [--frames-per-power 2]
         [--sweep-chart dead_leaves] [--scales S.json] [--bias-scales S.json] [--walk N] [--no-write]
-        [--rows R.pt] [--from-rows R.pt]
+        [--rows R.pt] [--from-rows R.pt [--paired-with BASE.pt] [--skip-scenes N]]
 
 The structure benchmark's scenes (section ``structure``: 480x640, seed 53000017, slanted planes,
 piecewise-planar layouts with occlusion edges, smooth surfaces; the whole world), each scene's
@@ -25,11 +25,14 @@ estimators over the scenes; the Cramér-Rao reference of section ``structure`` o
 information-poor scenes (:mod:`benchmarks.scene_information`); and each confidence per decile (observed /
 predicted median error within 20 %, the deciles of section ``uncertainty``), plotted in
 ``docs/psf_structure_calibration.png``. Writes section ``psf_structure`` of docs/BENCHMARKS.md.
+With ``--paired-with`` it prints instead the paired differences of saved rows against another
+run's rows of the same scenes (an A/B of a stage option, e.g. ``--walk``).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from collections.abc import Iterator
@@ -46,18 +49,21 @@ from benchmarks.scene_information import POOR_SCENE_STD, information_rows, plane
 from benchmarks.stage_rows import refuse
 from benchmarks.stage_uncertainty import decile_summary, relative_inverse_depth_error
 from benchmarks.uncertainty import decile_table, plot_calibration, resample_scenes
-from tdfd.dfd.inverse_variance import LikelihoodScales
+from tdfd.dfd.inverse_variance import LikelihoodScales, confidence_from_sigma
 from tdfd.model import DFDModel
 from training.calibrated_lens import SWEEP_CHART, SWEEP_CHARTS
 from training.data import STRUCTURE_LAYOUTS
 
-__all__ = ["ESTIMATORS", "merge_scenes", "refuse_rows", "with_plane_pooled", "target_rows", "difference_rows",
-           "bound_rows", "information_table", "confidence_rows", "main"]
+__all__ = ["ESTIMATORS", "TARGET_HEADER", "merge_scenes", "refuse_rows", "with_plane_pooled", "target_rows",
+           "difference_rows", "paired_with", "bound_rows", "information_table", "confidence_rows", "main"]
 
 #: the estimators scored, in the tables' order
 ESTIMATORS = ("model", "calibrated", BIAS_STAGE)
 #: issue 19's structure targets: median error per tile, share at confidence >= 0.5, median error there
 MEDIAN_LIMIT, SHARE_LIMIT, CONFIDENT_LIMIT = 0.02, 0.5, 0.01
+#: the columns of :func:`target_rows`' table
+TARGET_HEADER = ["layout", "tiles", "estimator", "count", "median error", "at confidence >= 0.5", "median there",
+                 "median <= 2 %", "share >= 50 %", "there <= 1 %"]
 #: the calibration plot
 FIGURE = ROOT / "docs" / "psf_structure_calibration.png"
 
@@ -174,13 +180,10 @@ def difference_rows(rows: list[dict], pairs: tuple[tuple[str, str], ...] = ((BIA
                                                                              ("calibrated", "model"),
                                                                              (BIAS_STAGE, "model")),
                     reps: int = BOOTSTRAP_REPS) -> list[list[object]]:
-    """Per layout and tile set, each pair's difference of median errors (points) with its 95 %
+    """Per layout (and all layouts) and tile set, each pair's difference of median errors (points) with its 95 %
     interval over a bootstrap of the scenes (the same resamples for every pair, seed 0)."""
     out = []
-    for layout in STRUCTURE_LAYOUTS:
-        if not any(r["layout"] == layout for r in rows):
-            continue
-        t = merge_scenes(rows, (layout,))
+    for layout, t in _groups(rows):
         for label, sel in _sets(t):
             errors = {k: _error(t, k)[sel] for k in {x for p in pairs for x in p}}
             draws = list(resample_scenes(t["scene"][sel], reps, torch.Generator().manual_seed(0)))
@@ -193,11 +196,34 @@ def difference_rows(rows: list[dict], pairs: tuple[tuple[str, str], ...] = ((BIA
     return out
 
 
-def bound_rows(rows: list[dict], estimators: tuple[str, ...] = ESTIMATORS) -> list[list[object]]:
+def paired_with(rows: list[dict], baseline: list[dict], estimators: tuple[str, ...] = ("calibrated", BIAS_STAGE)
+                ) -> list[dict]:
+    """``rows`` with each of ``estimators`` from ``baseline`` (another run's rows of the very scenes,
+    e.g. without ``--walk``) beside it as ``base <estimator>``: the pairs :func:`difference_rows` scores.
+
+    Raises:
+        ValueError: a scene of ``rows`` that ``baseline`` lacks or holds with other tiles.
+    """
+    base = {(r["layout"], r["scene"]): r for r in baseline}
+    out = []
+    for r in rows:
+        b = base.get((r["layout"], r["scene"]))
+        if b is None or not torch.equal(b["true"], r["true"]):
+            raise ValueError(f"the baseline rows lack {r['layout']} scene {r['scene']}, or hold it with other tiles")
+        out.append({**r, **{f"base {k}": b[k] for k in estimators},
+                    **{f"base {k}_conf": b[f"{k}_conf"] for k in estimators}})
+    return out
+
+
+def bound_rows(rows: list[dict], confidence_scale: float, estimators: tuple[str, ...] = ESTIMATORS
+               ) -> list[list[object]]:
     """Per layout (and all), the tiles away from edges: the score at the Cramér-Rao reference
-    (PSF shared; :func:`benchmarks.bench_bound.median_at_bound`), each estimator's median error
-    over it, and the largest share of the tiles, the most confident first, whose median error is
-    <= 1 % (:func:`benchmarks.bench_structure.largest_share`; at the bound ranked by the bound)."""
+    (PSF shared; :func:`benchmarks.bench_bound.median_at_bound`); the share of the tiles an
+    estimator at the bound would state at confidence >= 0.5 if its confidence told its own sigma
+    on the model's scale ``confidence_scale`` (:func:`tdfd.dfd.inverse_variance.confidence_from_sigma`:
+    what a calibrated confidence can give), with its score there; each estimator's median error
+    over the bound, and the largest share of the tiles, the most confident first, whose median
+    error is <= 1 % (:func:`benchmarks.bench_structure.largest_share`; at the bound ranked by the bound)."""
     out = []
     for name, t in _groups(rows):
         sel = ~t["edge"] & torch.isfinite(t["bound_shared"])
@@ -207,7 +233,10 @@ def bound_rows(rows: list[dict], estimators: tuple[str, ...] = ESTIMATORS) -> li
         at_bound = median_at_bound(bound)
         by_bound = bound.sort().values
         share_at_bound = largest_share(lambda k: median_at_bound(by_bound[:k]), by_bound.numel(), CONFIDENT_LIMIT)
-        cells = [_pct(at_bound), f"{100 * share_at_bound:.0f} %"]
+        sure = confidence_from_sigma(bound, confidence_scale) >= CONF
+        sure_cell = (f"{100 * float(sure.double().mean()):.0f} % ({_pct(median_at_bound(bound[sure]))})"
+                     if bool(sure.any()) else "0 %")
+        cells = [_pct(at_bound), f"{100 * share_at_bound:.0f} %", sure_cell]
         for k in estimators:
             e = _error(t, k)[sel]
             ranked = e[torch.argsort(t[f"{k}_conf"][sel], descending=True, stable=True)]
@@ -253,6 +282,11 @@ def main(argv: list[str] | None = None) -> int:
                                                      "(default: MODEL.likelihood-calibrated-bias.json)")
     p.add_argument("--walk", type=int, default=0, metavar="N",
                    help="let the stage move a window whose minimum lies on its edge up to N times (default 0)")
+    p.add_argument("--paired-with", default="", metavar="ROWS.pt",
+                   help="with --from-rows: print the paired differences against another run's saved rows of the "
+                        "same scenes (e.g. without --walk), fused with the same scales; implies --no-write")
+    p.add_argument("--skip-scenes", type=int, default=0, metavar="N",
+                   help="with --from-rows: score only the scenes from N on (e.g. those an A/B was not designed on)")
     p.add_argument("--no-write", action="store_true", help="print only; leave docs/ alone")
     p.add_argument("--rows", default="", help="also save every scene's tiles and fits (torch.save)")
     p.add_argument("--from-rows", default="", metavar="PATH",
@@ -263,6 +297,13 @@ def main(argv: list[str] | None = None) -> int:
         p.error("need 1 <= --scenes <= 1000, --frames-per-power >= 1 and --walk >= 0")
     if args.walk and args.from_rows:
         p.error("--from-rows fuses saved fits again; --walk needs new fits")
+    if (args.paired_with or args.skip_scenes) and not args.from_rows:
+        p.error("--paired-with and --skip-scenes score saved rows: give --from-rows")
+    if not 0 <= args.skip_scenes < args.scenes:
+        p.error("need 0 <= --skip-scenes < --scenes")
+    if args.skip_scenes and not (args.paired_with or args.no_write):
+        p.error("--skip-scenes scores part of a run: print it (--no-write or --paired-with), the section keeps "
+                "every scene")
     torch.set_num_threads(2)
     model = DFDModel.load(args.model)
     paths = (args.scales or f"{args.model}.likelihood-calibrated.json",
@@ -272,8 +313,18 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"{paths[1]} does not remove the model's bias (fitted without --shared-bias)")
     t0 = time.perf_counter()
     if args.from_rows:
-        rows = [r for r in torch.load(args.from_rows, weights_only=True) if r["scene"] < args.scenes]
+        kept = range(args.skip_scenes, args.scenes)
+        rows = [r for r in torch.load(args.from_rows, weights_only=True) if r["scene"] in kept]
         rows = refuse_rows(rows, model.confidence_scale, scales, bias_scales)
+        if args.paired_with:
+            base = refuse_rows([r for r in torch.load(args.paired_with, weights_only=True) if r["scene"] in kept],
+                               model.confidence_scale, scales, bias_scales)
+            pairs = (("calibrated", "base calibrated"), (BIAS_STAGE, f"base {BIAS_STAGE}"))
+            print(markdown_table(["layout", "tiles", "calibrated - baseline", f"{BIAS_STAGE} - baseline"],
+                                 difference_rows(paired_with(rows, base), pairs)))
+            print(markdown_table(TARGET_HEADER, target_rows(paired_with(rows, base), (
+                "base calibrated", "calibrated", f"base {BIAS_STAGE}", BIAS_STAGE))))
+            return 0
     else:  # the profiled stage's scales are not used: only the calibrated stage runs
         rows = structure_rows(model, (scales, scales), args.scenes, args.frames_per_power, args.sweep_chart,
                               bias_scales, stages=("calibrated",), bound=True, walk=args.walk)
@@ -286,7 +337,9 @@ def main(argv: list[str] | None = None) -> int:
         plot_calibration(tables, FIGURE, f"Structure scenes ({args.scenes} per layout): confidence per decile")
     shown = [repo_path(x) for x in paths]
     body = "\n".join([
-        f"Machine: {machine()}; the structure benchmark's first {args.scenes} scenes per layout (480x640, seed "
+        f"Machine: {machine()}; the structure benchmark's "
+        + (f"scenes {args.skip_scenes}-{args.scenes - 1}" if args.skip_scenes else f"first {args.scenes} scenes")
+        + f" per layout (480x640, seed "
         f"{STRUCTURE_SEED}, the whole world; the tiles in the working range; *away from edges* as in section "
         f"`structure`); wall time {wall:.0f} s"
         + (" (the fits a full run saved, fused again with these scales: `--from-rows`)" if args.from_rows else "")
@@ -301,8 +354,7 @@ def main(argv: list[str] | None = None) -> int:
         "their median error <= 1 %). Intervals: 2.5-97.5 % over 200 bootstrap resamples of the scenes; *yes* only "
         "when the whole interval meets the target:",
         "",
-        markdown_table(["layout", "tiles", "estimator", "count", "median error", "at confidence >= 0.5",
-                        "median there", "median <= 2 %", "share >= 50 %", "there <= 1 %"], target_rows(rows)),
+        markdown_table(TARGET_HEADER, target_rows(rows)),
         "",
         "Paired differences of the median error (points; 95 % over the same 200 resamples of the scenes):",
         "",
@@ -312,10 +364,13 @@ def main(argv: list[str] | None = None) -> int:
         "Against the information limit (away from edges; section `structure`'s per-tile Cramér-Rao reference, the "
         "PSF shared by the image): the score of an unbiased estimator at the bound, and each estimator's median "
         "error with its ratio to it; after the semicolon the largest share of the tiles, the most confident first "
-        "(at the bound: the best bound first), whose median error is <= 1 %:",
+        "(at the bound: the best bound first), whose median error is <= 1 %. *At the bound, confident*: the share "
+        f"of the tiles at confidence >= {CONF} had that estimator stated its own sigma on the model's scale "
+        f"(b0 = {model.confidence_scale:g}: sigma <= {100 * math.sqrt(2.0) * model.confidence_scale:.2f} %), and "
+        "its score on them: what a calibrated confidence can reach tile by tile:",
         "",
-        markdown_table(["layout", "tiles", "at the bound", "at the bound: share <= 1 %", *ESTIMATORS],
-                       bound_rows(rows)),
+        markdown_table(["layout", "tiles", "at the bound", "at the bound: share <= 1 %", "at the bound, confident",
+                        *ESTIMATORS], bound_rows(rows, model.confidence_scale)),
         "",
         "By the information the scenes hold (away from edges): a scene is *information-poor* when the median of "
         f"its tiles' Cramér-Rao reference exceeds {100 * POOR_SCENE_STD:.2f} % (an unbiased estimator at the bound "

@@ -86,7 +86,8 @@ def register(subparsers: Any) -> None:
                         "sweep, the likelihood stage's one PSF (default: profiled over the family's shapes)")
     p.add_argument("--likelihood-walk", type=int, default=0, metavar="N",
                    help="for --likelihood-stage: let a tile whose fit finds no minimum within 5 %% of the model's "
-                        "depth move its search window up to N times (default 0; section psf_structure's notes)")
+                        "depth move its search window up to N times; a walk that ends farther from the fitted "
+                        "neighbours than the model's depth is undone (default 0; section psf_structure's notes)")
     p.add_argument("--psf-family", default="exported", metavar="FAMILY",
                    help="the lens's PSF family the model's CNN is told: gaussian, pillbox, unknown, a camera JSON "
                         "from 'tdfd calibrate' (its measured psf_family), or exported (default: the family the ONNX "

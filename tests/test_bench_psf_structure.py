@@ -10,7 +10,8 @@ import torch
 
 from benchmarks.bench_psf_model import BIAS_STAGE
 from benchmarks.bench_psf_refused import refuse_planes
-from benchmarks.bench_psf_structure import bound_rows, difference_rows, merge_scenes, refuse_rows, target_rows
+from benchmarks.bench_psf_structure import (bound_rows, difference_rows, main, merge_scenes, paired_with, refuse_rows,
+                                          target_rows)
 from benchmarks.bench_structure import SCENE_ID_STEP
 from tdfd.dfd.inverse_variance import LikelihoodScales
 
@@ -59,11 +60,14 @@ def test_differences_and_the_bound_are_scored_away_from_edges():
     diff = {r[1]: r for r in difference_rows(rows, reps=20)}
     assert diff["away from edges"][2] == "-0.30 (-0.30 .. -0.30)"  # bias stage - calibrated
     assert diff["away from edges"][3].startswith("-2.20")  # calibrated - model
-    (layout, everything) = bound_rows(rows)
+    (layout, everything) = bound_rows(rows, 0.01)
     assert layout[:2] == ["layout", 120]
     at_bound = float(layout[2].split()[0]) / 100
     assert at_bound == pytest.approx(0.6745 * 0.004, rel=0.02)  # the median |e| of a normal of that sigma
-    assert layout[6] == "0.50 % (1.85x); 100 %" and layout[4].endswith("; 0 %")  # the model's 3 %: no share
+    assert layout[4] == "100 % (0.27 %)"  # sigma 0.4 % <= sqrt(2) b0: every tile would be confident
+    assert layout[7] == "0.50 % (1.85x); 100 %" and layout[5].endswith("; 0 %")  # the model's 3 %: no share
+    # with b0 = 0.2 %, sigma 0.4 % states 1 / (1 + 0.004^2 / (2 * 0.002^2)) = 1/3: none is confident
+    assert bound_rows(rows, 0.002)[0][4] == "0 %"
 
 
 def _grids(h: int = 4, w: int = 5) -> dict:
@@ -108,3 +112,32 @@ def test_plane_fits_fused_again_follow_the_scales():
     assert bool((r["calibrated_conf"] > 0.5).all())
     with pytest.raises(ValueError, match="square grid"):
         refuse_planes([{**row, "true_q": q_true[:24]}], 0.01, LikelihoodScales(), None)
+
+
+def test_a_run_is_paired_with_a_baseline_of_the_same_scenes():
+    rows = [_scene("layout", i) for i in range(3)] + [_scene("smooth", i) for i in range(3)]
+    base = [dict(r, calibrated=r["calibrated"] * 1.01) for r in rows]  # the baseline 1 % further off
+    paired = paired_with(rows, base)
+    assert torch.equal(paired[0]["base calibrated"], base[0]["calibrated"])
+    assert torch.equal(paired[0][f"base {BIAS_STAGE}_conf"], rows[0][f"{BIAS_STAGE}_conf"])
+    diff = {(r[0], r[1]): r for r in difference_rows(paired, (("calibrated", "base calibrated"),), reps=20)}
+    # away from edges 0.8 % against 1.808 %: -1.01 points in every resample; the layouts together too
+    assert diff[("layout", "away from edges")][2] == "-1.01 (-1.01 .. -1.01)"
+    assert diff[("all layouts", "away from edges")][2] == "-1.01 (-1.01 .. -1.01)"
+    with pytest.raises(ValueError, match="baseline"):
+        paired_with(rows, base[1:])
+    other = [dict(r, true=r["true"] * 2) if r["scene"] == 0 else r for r in base]
+    with pytest.raises(ValueError, match="other tiles"):
+        paired_with(rows, other)
+
+
+def test_pairing_and_skipping_need_saved_rows(capsys):
+    for option in (["--paired-with", "b.pt"], ["--skip-scenes", "2"]):
+        with pytest.raises(SystemExit):
+            main([*option, "--no-write"])
+        assert "give --from-rows" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--from-rows", "r.pt", "--scenes", "4", "--skip-scenes", "4", "--no-write"])
+    with pytest.raises(SystemExit):  # part of a run is printed, never written as the section
+        main(["--from-rows", "r.pt", "--scenes", "4", "--skip-scenes", "2"])
+    assert "--skip-scenes scores part of a run" in capsys.readouterr().err

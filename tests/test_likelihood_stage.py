@@ -129,14 +129,19 @@ def test_the_seeded_fit_finds_a_rendered_planes_depth_and_psf_without_the_noise(
         walked = seeded_tile_fit(y1, y2, CAM, origins, 64, seed * off, [true_hyp], walk=5)
         assert float((walked.q * depth - 1.0).abs().max()) < 0.005, off
         assert bool(torch.isfinite(walked.sigma_q).all())
+        # the fit before the walk is kept for the stage's check against the neighbours
+        assert bool(walked.walked.all()) and bool(torch.isinf(walked.unwalked.sigma_q).all())
+        assert walked.unwalked.unwalked is None and not bool(walked.unwalked.walked.any())
     # too few moves: still on an edge, still no weight; a tile already inside is left alone
     short = seeded_tile_fit(y1, y2, CAM, origins, 64, seed * 1.2, [true_hyp], walk=1)
     assert bool(torch.isinf(short.sigma_q).all())
+    assert far.unwalked is None and not bool(far.walked.any())
     near = seeded_tile_fit(y1, y2, CAM, origins, 64, seed, [true_hyp], walk=3)
     torch.testing.assert_close(near.q, seeded_tile_fit(y1, y2, CAM, origins, 64, seed, [true_hyp]).q)
     # a walked minimum that gains less than walk_gain over the first window's edge keeps no weight
     strict = seeded_tile_fit(y1, y2, CAM, origins, 64, seed * 1.2, [true_hyp], walk=5, walk_gain=1e9)
     torch.testing.assert_close(strict.q, far.q)
+    assert not bool(strict.walked.any())  # a walk the gain refused does not count as walked
     assert bool(torch.isinf(strict.sigma_q).all())
     with pytest.raises(InputError, match="walk_gain"):
         seeded_tile_fit(y1, y2, CAM, origins, 64, seed, [true_hyp], walk=1, walk_gain=-1.0)

@@ -51,7 +51,7 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import torch
@@ -64,6 +64,7 @@ from .inverse_variance import LikelihoodScales, confidence_from_sigma, fuse, mod
 from .psf_hypotheses import WAVELENGTH_M, PsfHypothesis, psf_hypotheses
 from .shared_bias import bias_map
 from .seeded_fit import PROFILE_TILES, Q_STEP, SEED_WINDOW, inverse_depth_grid, kernel_side, seeded_tile_fit
+from .walk_gate import neighbour_consensus, walk_rejected
 
 __all__ = ["LikelihoodStageResult", "valid_tiles", "fuse_with_fit", "likelihood_stage", "LikelihoodStage"]
 
@@ -194,7 +195,9 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
         seed_window, q_step, band, max_kernel, profile_tiles, walk: see
             :func:`~tdfd.dfd.seeded_fit.seeded_tile_fit` (the model's most confident tiles choose the PSF;
             ``walk`` moves a window whose minimum lies on its edge, on the tiles whose model
-            sigma reaches past the window at two sigmas: the model's confident tiles keep theirs).
+            sigma reaches past the window at two sigmas: the model's confident tiles keep theirs;
+            a walk that ends farther from the fitted neighbours than its seed is undone,
+            :mod:`tdfd.dfd.walk_gate`).
 
     Returns:
         :class:`LikelihoodStageResult`.
@@ -236,6 +239,12 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
         fit = seeded_tile_fit(y1, y2, camera, origins, tile, seed, hyps, window=seed_window, step=q_step, band=band,
                               max_kernel=max_kernel, profile_tiles=profile_tiles, profile_by=confidence[k, 0, ii, jj],
                               walk=walk, walk_tiles=2.0 * sigma_m[k, 0, ii, jj] > seed_window)
+        if fit.unwalked is not None:  # a walk away from the fitted neighbours is a drift: back to the first fit
+            first = fit.unwalked
+            consensus = neighbour_consensus(first.q, torch.isfinite(first.sigma_q), ii, jj, tuple(depth.shape[-2:]))
+            back = walk_rejected(fit.q, seed, consensus, fit.walked)
+            fit = replace(fit, **{f: torch.where(back, getattr(first, f), getattr(fit, f))
+                                  for f in ("q", "sigma_q", "noise")}, walked=fit.walked & ~back)
         f_fit, _ = scales.factors(slope)
         q, conf_q, biases[k, 0], _ = fuse_with_fit(seed, sigma_m[k, 0, ii, jj], fit.q, fit.sigma_q, slope, scales,
                                                    confidence_scale, ii, jj, tuple(depth.shape[-2:]))

@@ -123,12 +123,18 @@ class SeededFit:
         noise: ``(T,)`` the NLL at the minimum: the tile's noise variance relative to the fit's
             unit (about 1 for a well-modelled tile of unit noise).
         hypothesis: the PSF the image shares.
+        walked: ``(T,)`` bool, the tiles whose walked minimum counts (all False without ``walk``;
+            ``None`` on a fit built by hand).
+        unwalked: the fit before any walk (``None`` without ``walk``), for a caller's check of the
+            walked tiles against their neighbours (:mod:`tdfd.dfd.walk_gate`).
     """
 
     q: torch.Tensor
     sigma_q: torch.Tensor
     noise: torch.Tensor
     hypothesis: PsfHypothesis
+    walked: torch.Tensor | None = None
+    unwalked: "SeededFit | None" = None
 
 
 def seeded_tile_fit(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, origins: Sequence[tuple[int, int]], tile: int,
@@ -224,4 +230,9 @@ def seeded_tile_fit(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, origins:
     weak = walked & (bins * torch.log(first[1] / value.clamp_min(1e-300)) < walk_gain)
     q, value, curvature = (torch.where(weak, a, b) for a, b in zip(first, (q, value, curvature)))
     sigma = curvature_sigma(curvature, bins, value)
-    return SeededFit(q=q, sigma_q=sigma, noise=value, hypothesis=hypotheses[c])
+    unwalked = None
+    if walk:
+        unwalked = SeededFit(q=first[0], sigma_q=curvature_sigma(first[2], bins, first[1]), noise=first[1],
+                             hypothesis=hypotheses[c], walked=torch.zeros_like(walked))
+    return SeededFit(q=q, sigma_q=sigma, noise=value, hypothesis=hypotheses[c], walked=walked & ~weak,
+                     unwalked=unwalked)
