@@ -43,7 +43,7 @@ from benchmarks.bench_bound import median_at_bound
 from benchmarks.bench_structure import (BOOTSTRAP_REPS, CONF, SCENE_ID_STEP, STRUCTURE_SEED, judge_over_scenes,
                                         largest_share, scene_intervals)
 from benchmarks.depth_models import predicted_scale
-from benchmarks.psf_stages import BIAS_STAGE, structure_rows
+from benchmarks.psf_stages import BIAS_STAGE, paired_with, structure_rows
 from benchmarks.report import ROOT, given_options, machine, markdown_table, repo_path, update_section
 from benchmarks.scene_information import POOR_SCENE_STD, information_rows, plane_pooled_std
 from benchmarks.stage_rows import refuse
@@ -55,7 +55,7 @@ from training.calibrated_lens import SWEEP_CHART, SWEEP_CHARTS
 from training.data import STRUCTURE_LAYOUTS
 
 __all__ = ["ESTIMATORS", "TARGET_HEADER", "merge_scenes", "refuse_rows", "with_plane_pooled", "target_rows",
-           "difference_rows", "paired_with", "bound_rows", "information_table", "confidence_rows", "main"]
+           "difference_rows", "bound_rows", "information_table", "confidence_rows", "main"]
 
 #: the estimators scored, in the tables' order
 ESTIMATORS = ("model", "calibrated", BIAS_STAGE)
@@ -193,25 +193,6 @@ def difference_rows(rows: list[dict], pairs: tuple[tuple[str, str], ...] = ((BIA
                 cells.append(f"{100 * (float(errors[a].median()) - float(errors[b].median())):+.2f} "
                              f"({100 * d[int(0.025 * reps)]:+.2f} .. {100 * d[int(0.975 * reps) - 1]:+.2f})")
             out.append([layout, label, *cells])
-    return out
-
-
-def paired_with(rows: list[dict], baseline: list[dict], estimators: tuple[str, ...] = ("calibrated", BIAS_STAGE)
-                ) -> list[dict]:
-    """``rows`` with each of ``estimators`` from ``baseline`` (another run's rows of the very scenes,
-    e.g. without ``--walk``) beside it as ``base <estimator>``: the pairs :func:`difference_rows` scores.
-
-    Raises:
-        ValueError: a scene of ``rows`` that ``baseline`` lacks or holds with other tiles.
-    """
-    base = {(r["layout"], r["scene"]): r for r in baseline}
-    out = []
-    for r in rows:
-        b = base.get((r["layout"], r["scene"]))
-        if b is None or not torch.equal(b["true"], r["true"]):
-            raise ValueError(f"the baseline rows lack {r['layout']} scene {r['scene']}, or hold it with other tiles")
-        out.append({**r, **{f"base {k}": b[k] for k in estimators},
-                    **{f"base {k}_conf": b[f"{k}_conf"] for k in estimators}})
     return out
 
 

@@ -30,7 +30,7 @@ from training.calibrated_lens import SWEEP_CHART, sweep_fit
 from training.data import STRUCTURE_LAYOUTS, textured_scenes
 from training.fit_likelihood_stage import black_levels
 
-__all__ = ["SWEEP_SEED", "STAGES", "BIAS_STAGE", "FIT_FIELDS", "stages_for", "structure_rows"]
+__all__ = ["SWEEP_SEED", "STAGES", "BIAS_STAGE", "FIT_FIELDS", "stages_for", "structure_rows", "paired_with"]
 
 #: the sweeps' seeds (``training.calibrated_lens.sweep_fit``): planes at +i, structure scenes above
 SWEEP_SEED = 7_000_000
@@ -120,4 +120,24 @@ def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodSc
                 rel = depth_variances(fisher, prior_var)["tile_shared"].sqrt() * true
                 row["bound_shared"] = torch.where(edge, torch.full_like(rel, math.nan), rel)[keep]
             out.append(row)
+    return out
+
+
+def paired_with(rows: list[dict], baseline: list[dict], estimators: tuple[str, ...] = ("calibrated", BIAS_STAGE)
+                ) -> list[dict]:
+    """``rows`` with each of ``estimators`` from ``baseline`` (another run's rows of the very scenes,
+    e.g. without ``--walk``) beside it as ``base <estimator>``: the pairs
+    :func:`benchmarks.bench_psf_structure.difference_rows` scores.
+
+    Raises:
+        ValueError: a scene of ``rows`` that ``baseline`` lacks or holds with other tiles.
+    """
+    base = {(r["layout"], r["scene"]): r for r in baseline}
+    out = []
+    for r in rows:
+        b = base.get((r["layout"], r["scene"]))
+        if b is None or not torch.equal(b["true"], r["true"]):
+            raise ValueError(f"the baseline rows lack {r['layout']} scene {r['scene']}, or hold it with other tiles")
+        out.append({**r, **{f"base {k}": b[k] for k in estimators},
+                    **{f"base {k}_conf": b[f"{k}_conf"] for k in estimators}})
     return out

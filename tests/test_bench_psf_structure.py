@@ -10,9 +10,9 @@ import torch
 
 from benchmarks.bench_psf_model import BIAS_STAGE
 from benchmarks.bench_psf_refused import refuse_planes
-from benchmarks.bench_psf_structure import (bound_rows, difference_rows, main, merge_scenes, paired_with, refuse_rows,
-                                          target_rows)
+from benchmarks.bench_psf_structure import bound_rows, difference_rows, main, merge_scenes, refuse_rows, target_rows
 from benchmarks.bench_structure import SCENE_ID_STEP
+from benchmarks.psf_stages import paired_with
 from tdfd.dfd.inverse_variance import LikelihoodScales
 
 F64 = torch.float64
