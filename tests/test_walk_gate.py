@@ -56,6 +56,25 @@ def test_the_consensus_refuses_bad_input():
         neighbour_consensus(q, ok, rows + 1, cols, (2, 2))
     with pytest.raises(InputError, match="radius"):
         neighbour_consensus(q, ok, rows, cols, (2, 2), radius=0)
+    with pytest.raises(InputError, match="cell of its own"):
+        neighbour_consensus(q, ok, rows, torch.zeros_like(cols), (2, 2))
+
+
+def test_the_consensus_is_every_pair_within_the_radius_on_a_random_sparse_grid():
+    # the windowed computation against its definition, pair by pair
+    g = torch.Generator().manual_seed(5)
+    h, w = 9, 13
+    cells = torch.randperm(h * w, generator=g)[:70]
+    rows, cols = cells // w, cells % w
+    q = 1.0 + torch.rand(70, generator=g, dtype=torch.float64)
+    usable = torch.rand(70, generator=g) < 0.6
+    for radius, least in ((1, 1), (2, 3), (3, 5)):
+        got = neighbour_consensus(q, usable, rows, cols, (h, w), radius, least)
+        for t in range(70):
+            near = ((rows - rows[t]).abs() <= radius) & ((cols - cols[t]).abs() <= radius) & usable
+            near[t] = False
+            want = q[near].median() if int(near.sum()) >= least else torch.tensor(math.nan, dtype=torch.float64)
+            torch.testing.assert_close(got[t], want.to(torch.float64), rtol=0, atol=0, equal_nan=True)
 
 
 def test_a_walk_is_undone_only_when_it_ends_farther_from_the_consensus_than_its_seed():

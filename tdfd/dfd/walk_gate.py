@@ -56,7 +56,8 @@ def neighbour_consensus(q: torch.Tensor, usable: torch.Tensor, rows: torch.Tenso
         radius, least: the neighbourhood's half-width in tiles and the least count.
 
     Raises:
-        InputError: tensors not ``(T,)``, cells off the grid, ``radius`` < 1 or ``least`` < 1.
+        InputError: tensors not ``(T,)``, cells off the grid or shared by two tiles, ``radius`` < 1
+            or ``least`` < 1.
     """
     n = q.shape[0] if q.ndim == 1 else -1
     if n < 0 or any(t.shape != (n,) for t in (usable, rows, cols)) or usable.dtype != torch.bool:
@@ -67,11 +68,25 @@ def neighbour_consensus(q: torch.Tensor, usable: torch.Tensor, rows: torch.Tenso
     h, w = grid
     if n and (int(rows.min()) < 0 or int(cols.min()) < 0 or int(rows.max()) >= h or int(cols.max()) >= w):
         raise InputError(f"tile cells must lie on the {h}x{w} grid")
-    near = ((rows[:, None] - rows[None, :]).abs() <= radius) & ((cols[:, None] - cols[None, :]).abs() <= radius)
-    near &= usable[None, :] & ~torch.eye(n, dtype=torch.bool)
-    values = torch.where(near, q.to(torch.float64)[None, :], torch.full((n, n), math.nan, dtype=torch.float64))
+    cells = rows * w + cols
+    if cells.unique().numel() != n:
+        raise InputError("each tile must have a cell of its own on the grid")
+    # each tile's (2 radius + 1)^2 window on the grid, its own cell left out: O(T) memory, not O(T^2)
+    side = 2 * radius + 1
+    on_grid = torch.full((h * w,), math.nan, dtype=torch.float64)
+    on_grid[cells[usable]] = q.to(torch.float64)[usable]
+    counted = torch.zeros(h * w, dtype=torch.float64)
+    counted[cells[usable]] = 1.0
+
+    def windows(x: torch.Tensor, fill: float) -> torch.Tensor:
+        padded = torch.nn.functional.pad(x.reshape(1, 1, h, w), (radius,) * 4, value=fill)
+        out = torch.nn.functional.unfold(padded, side)[0].T[cells]  # (T, side^2)
+        out[:, side * side // 2] = fill
+        return out
+
+    values = windows(on_grid, math.nan)
     out = values.nanmedian(1).values if n else values.new_zeros(0)
-    return torch.where(near.sum(1) >= least, out, torch.full_like(out, math.nan))
+    return torch.where(windows(counted, 0.0).sum(1) >= least, out, torch.full_like(out, math.nan))
 
 
 def walk_rejected(q_walked: torch.Tensor, q_seed: torch.Tensor, consensus: torch.Tensor, walked: torch.Tensor
