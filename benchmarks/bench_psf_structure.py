@@ -43,10 +43,9 @@ from benchmarks.bench_bound import median_at_bound
 from benchmarks.bench_structure import (BOOTSTRAP_REPS, CONF, SCENE_ID_STEP, STRUCTURE_SEED, judge_over_scenes,
                                         largest_share, scene_intervals)
 from benchmarks.depth_models import predicted_scale
-from benchmarks.psf_stages import BIAS_STAGE, paired_with, structure_rows
+from benchmarks.psf_stages import BIAS_STAGE, POOLED, paired_with, refuse_rows, structure_rows
 from benchmarks.report import ROOT, given_options, machine, markdown_table, repo_path, update_section
 from benchmarks.scene_information import POOR_SCENE_STD, information_rows, plane_pooled_std
-from benchmarks.stage_rows import refuse
 from benchmarks.stage_uncertainty import decile_summary, relative_inverse_depth_error
 from benchmarks.uncertainty import decile_table, plot_calibration, resample_scenes
 from tdfd.dfd.inverse_variance import LikelihoodScales, confidence_from_sigma
@@ -57,8 +56,10 @@ from training.data import STRUCTURE_LAYOUTS
 __all__ = ["ESTIMATORS", "TARGET_HEADER", "merge_scenes", "refuse_rows", "with_plane_pooled", "target_rows",
            "difference_rows", "bound_rows", "information_table", "confidence_rows", "main"]
 
-#: the estimators scored, in the tables' order
-ESTIMATORS = ("model", "calibrated", BIAS_STAGE)
+#: the estimators scored, in the tables' order (``<stage>_pooled``: its fused map pooled along the depth structure,
+#: :func:`benchmarks.psf_stages.refuse_rows`)
+ESTIMATORS = ("model", "calibrated", BIAS_STAGE, *(f"{k}_pooled" for k in POOLED))
+POOLED_BIAS = f"{BIAS_STAGE}_pooled"
 #: issue 19's structure targets: median error per tile, share at confidence >= 0.5, median error there
 MEDIAN_LIMIT, SHARE_LIMIT, CONFIDENT_LIMIT = 0.02, 0.5, 0.01
 #: the columns of :func:`target_rows`' table
@@ -84,30 +85,6 @@ def merge_scenes(rows: list[dict], layouts: tuple[str, ...] = STRUCTURE_LAYOUTS)
     lay = [layouts.index(r["layout"]) for r in rows]
     out["layout"] = torch.cat([torch.full((k,), j) for k, j in zip(n, lay)])
     out["scene"] = torch.cat([torch.full((k,), j * SCENE_ID_STEP + r["scene"]) for k, j, r in zip(n, lay, rows)])
-    return out
-
-
-def refuse_rows(rows: list[dict], confidence_scale: float, scales: LikelihoodScales, bias_scales: LikelihoodScales
-                ) -> list[dict]:
-    """``rows`` (saved with ``--rows``) with ``calibrated`` and :data:`BIAS_STAGE` fused again from the
-    calibrated stage's very fits (``row["grids"]``, :func:`benchmarks.stage_rows.refuse`) with
-    ``scales`` and ``bias_scales``: what a run with those scales gives, without the sweeps and fits.
-
-    Raises:
-        ValueError: rows without the calibrated stage's grids.
-    """
-    out = []
-    for r in rows:
-        g = r.get("grids", {})
-        if "calibrated_depth_fit" not in g:
-            raise ValueError(f"row {r.get('layout')} {r.get('scene')} has no calibrated fits to fuse again (rows of an "
-                             "older run)")
-        row = dict(r)
-        for name, sc in (("calibrated", scales), (BIAS_STAGE, bias_scales)):
-            d, c = refuse(g["calibrated_fitted"], g["calibrated_depth_fit"], g["calibrated_sigma_fit_raw"],
-                          g["calibrated_slope"], g["model"], g["model_conf"], confidence_scale, sc)
-            row[name], row[f"{name}_conf"] = d[g["keep"]].double(), c[g["keep"]].double()
-        out.append(row)
     return out
 
 
@@ -176,9 +153,11 @@ def target_rows(rows: list[dict], estimators: tuple[str, ...] = ESTIMATORS, reps
     return out
 
 
-def difference_rows(rows: list[dict], pairs: tuple[tuple[str, str], ...] = ((BIAS_STAGE, "calibrated"),
-                                                                             ("calibrated", "model"),
-                                                                             (BIAS_STAGE, "model")),
+#: the pairs :func:`difference_rows` scores by default
+PAIRS = ((BIAS_STAGE, "calibrated"), ("calibrated", "model"), (BIAS_STAGE, "model"), (POOLED_BIAS, BIAS_STAGE))
+
+
+def difference_rows(rows: list[dict], pairs: tuple[tuple[str, str], ...] = PAIRS,
                     reps: int = BOOTSTRAP_REPS) -> list[list[object]]:
     """Per layout (and all layouts) and tile set, each pair's difference of median errors (points) with its 95 %
     interval over a bootstrap of the scenes (the same resamples for every pair, seed 0)."""
@@ -292,23 +271,28 @@ def main(argv: list[str] | None = None) -> int:
     scales, bias_scales = LikelihoodScales.load(paths[0]), LikelihoodScales.load(paths[1])
     if not bias_scales.shared_bias:
         p.error(f"{paths[1]} does not remove the model's bias (fitted without --shared-bias)")
+    if model.structure_pooling is None:
+        p.error(f"{args.model} has no structure pooling: the pooled stages pool with the model's own")
     t0 = time.perf_counter()
     if args.from_rows:
         kept = range(args.skip_scenes, args.scenes)
         rows = [r for r in torch.load(args.from_rows, weights_only=True) if r["scene"] in kept]
-        rows = refuse_rows(rows, model.confidence_scale, scales, bias_scales)
         if args.paired_with:
             base = refuse_rows([r for r in torch.load(args.paired_with, weights_only=True) if r["scene"] in kept],
-                               model.confidence_scale, scales, bias_scales)
-            pairs = (("calibrated", "base calibrated"), (BIAS_STAGE, f"base {BIAS_STAGE}"))
-            print(markdown_table(["layout", "tiles", "calibrated - baseline", f"{BIAS_STAGE} - baseline"],
-                                 difference_rows(paired_with(rows, base), pairs)))
-            print(markdown_table(TARGET_HEADER, target_rows(paired_with(rows, base), (
-                "base calibrated", "calibrated", f"base {BIAS_STAGE}", BIAS_STAGE))))
+                               model.confidence_scale, scales, bias_scales, model.structure_pooling)
+            paired = paired_with(refuse_rows(rows, model.confidence_scale, scales, bias_scales,
+                                             model.structure_pooling), base, ESTIMATORS[1:])
+            pairs = (*((k, f"base {k}") for k in ESTIMATORS[1:]), (POOLED_BIAS, f"base {BIAS_STAGE}"))
+            print(markdown_table(["layout", "tiles", *(f"{a} - {b.replace('base ', 'baseline ')}" for a, b in pairs)],
+                                 difference_rows(paired, pairs)))
+            print(markdown_table(TARGET_HEADER, target_rows(paired, tuple(x for k in ESTIMATORS[1:]
+                                                                          for x in (f"base {k}", k)))))
             return 0
     else:  # the profiled stage's scales are not used: only the calibrated stage runs
         rows = structure_rows(model, (scales, scales), args.scenes, args.frames_per_power, args.sweep_chart,
                               bias_scales, stages=("calibrated",), bound=True, walk=args.walk)
+    # the pooled stages (and, on saved fits, the fusion with these scales)
+    rows = refuse_rows(rows, model.confidence_scale, scales, bias_scales, model.structure_pooling)
     wall = time.perf_counter() - t0
     if args.rows:
         torch.save(rows, args.rows)
@@ -329,7 +313,9 @@ def main(argv: list[str] | None = None) -> int:
         f"(`{args.sweep_chart}` chart, {args.frames_per_power} frame(s) per power: section `psf_model`'s sweeps). "
         f"`model`: the shipped model's pooled map; `calibrated`: the likelihood stage told the sweep's PSF, scales "
         f"`{shown[0]}`; `{BIAS_STAGE}`: its very fits fused again with `{shown[1]}` (the model's bias within "
-        f"{bias_scales.bias_radius} tiles removed first).",
+        f"{bias_scales.bias_radius} tiles removed first); `<stage>_pooled`: that stage's map pooled along the depth "
+        f"structure by the model's own structure pooling, each tile weighted by its fused confidence, which it keeps "
+        f"(`tdfd depth --likelihood-pool`, `tdfd.dfd.stage_pooling`).",
         "",
         "Issue 19's structure targets (median error per tile <= 2 %; >= 50 % of the tiles at confidence >= 0.5, "
         "their median error <= 1 %). Intervals: 2.5-97.5 % over 200 bootstrap resamples of the scenes; *yes* only "
@@ -340,7 +326,7 @@ def main(argv: list[str] | None = None) -> int:
         "Paired differences of the median error (points; 95 % over the same 200 resamples of the scenes):",
         "",
         markdown_table(["layout", "tiles", f"{BIAS_STAGE} - calibrated", "calibrated - model",
-                        f"{BIAS_STAGE} - model"], difference_rows(rows)),
+                        f"{BIAS_STAGE} - model", f"{POOLED_BIAS} - {BIAS_STAGE}"], difference_rows(rows)),
         "",
         "Against the information limit (away from edges; section `structure`'s per-tile Cramér-Rao reference, the "
         "PSF shared by the image): the score of an unbiased estimator at the bound, and each estimator's median "

@@ -5,7 +5,8 @@ Pieces of ``benchmarks/bench_psf_model.py`` (the planes) and ``benchmarks/bench_
 its focus-sweep calibration; :func:`structure_rows` runs them on the structure benchmark's scenes,
 each scene's lens calibrated from its own sweep, and keeps each tile in the working range and the
 whole grid's fits (so that other scales can fuse the very same fits again,
-:func:`benchmarks.stage_rows.refuse`).
+:func:`benchmarks.stage_rows.refuse`, and pool them: :func:`refuse_rows`); :func:`paired_with` sets
+another run's rows of the same scenes beside them.
 """
 
 from __future__ import annotations
@@ -18,19 +19,21 @@ from tqdm import tqdm
 from benchmarks.bench_bound import depth_variances, psf_model, psf_prior_variance, tile_fisher
 from benchmarks.bench_structure import STRUCTURE_SEED
 from benchmarks.depth_edges import edge_tiles
-from benchmarks.stage_rows import refused
+from benchmarks.stage_rows import refuse, refused
 from data_synth.params import SynthConfig
 from tdfd.calibration.psf_model import PsfModelFit
 from tdfd.dfd.inverse_variance import LikelihoodScales
 from tdfd.dfd.likelihood_stage import LikelihoodStage
 from tdfd.dfd.psf_hypotheses import PsfHypothesis
+from tdfd.dfd.stage_pooling import pool_stage_map
 from tdfd.model import DFDModel
 from tdfd.optics.aberrated_psf import PSFModel
 from training.calibrated_lens import SWEEP_CHART, sweep_fit
 from training.data import STRUCTURE_LAYOUTS, textured_scenes
 from training.fit_likelihood_stage import black_levels
 
-__all__ = ["SWEEP_SEED", "STAGES", "BIAS_STAGE", "FIT_FIELDS", "stages_for", "structure_rows", "paired_with"]
+__all__ = ["SWEEP_SEED", "STAGES", "BIAS_STAGE", "POOLED", "FIT_FIELDS", "stages_for", "structure_rows", "refuse_rows",
+           "paired_with"]
 
 #: the sweeps' seeds (``training.calibrated_lens.sweep_fit``): planes at +i, structure scenes above
 SWEEP_SEED = 7_000_000
@@ -40,6 +43,8 @@ STAGES = ("profiled", "calibrated_shipped_scales", "calibrated", "told")
 #: ``--bias-scales``: the ``calibrated`` stage's fits fused again with scales that remove the
 #: model's bias first (:func:`benchmarks.stage_rows.refused`)
 BIAS_STAGE = "calibrated_bias"
+#: the stages :func:`refuse_rows` also pools (``tdfd depth --likelihood-pool``), each named ``<stage>_pooled``
+POOLED = ("calibrated", BIAS_STAGE)
 #: a stage's result fields a structure row keeps on the whole grid (``row["grids"]``)
 FIT_FIELDS = ("depth_fit", "sigma_fit_raw", "slope", "fitted")
 
@@ -140,4 +145,34 @@ def paired_with(rows: list[dict], baseline: list[dict], estimators: tuple[str, .
             raise ValueError(f"the baseline rows lack {r['layout']} scene {r['scene']}, or hold it with other tiles")
         out.append({**r, **{f"base {k}": b[k] for k in estimators},
                     **{f"base {k}_conf": b[f"{k}_conf"] for k in estimators}})
+    return out
+
+
+def refuse_rows(rows: list[dict], confidence_scale: float, scales: LikelihoodScales, bias_scales: LikelihoodScales,
+                pooling=None) -> list[dict]:
+    """``rows`` (:func:`structure_rows`, saved with ``--rows``) with ``calibrated`` and :data:`BIAS_STAGE`
+    fused again from the calibrated stage's very fits (``row["grids"]``, :func:`benchmarks.stage_rows.refuse`)
+    with ``scales`` and ``bias_scales``: what a run with those scales gives, without the sweeps and fits. With
+    ``pooling`` (the model's structure pooling) also each of :data:`POOLED` pooled along the depth structure
+    as the stage pools it (:func:`tdfd.dfd.stage_pooling.pool_stage_map` on the whole grid), ``<stage>_pooled``,
+    its confidence the fused one.
+
+    Raises:
+        ValueError: rows without the calibrated stage's grids.
+    """
+    out = []
+    for r in rows:
+        g = r.get("grids", {})
+        if "calibrated_depth_fit" not in g:
+            raise ValueError(f"row {r.get('layout')} {r.get('scene')} has no calibrated fits to fuse again (rows of an "
+                             "older run)")
+        row = dict(r)
+        for name, sc in (("calibrated", scales), (BIAS_STAGE, bias_scales)):
+            d, c = refuse(g["calibrated_fitted"], g["calibrated_depth_fit"], g["calibrated_sigma_fit_raw"],
+                          g["calibrated_slope"], g["model"], g["model_conf"], confidence_scale, sc)
+            row[name], row[f"{name}_conf"] = d[g["keep"]].double(), c[g["keep"]].double()
+            if pooling is not None and name in POOLED:
+                pooled = pool_stage_map(d[None, None], c[None, None], confidence_scale, pooling)[0, 0]
+                row[f"{name}_pooled"], row[f"{name}_pooled_conf"] = pooled[g["keep"]].double(), row[f"{name}_conf"]
+        out.append(row)
     return out

@@ -5,7 +5,8 @@ r"""``tdfd depth``: depth from a DFD pair of image files with the exported ONNX 
     tdfd depth IMAGE_F1 IMAGE_F2 [--model M] [-o depth.npy|.tiff|.png] [--white-level L]
                [--full-resolution] [--threshold C] [--centre FRACTION] [--threads T]
                [--psf-family gaussian|pillbox|unknown|CAM.json] [--tiles]
-               [--likelihood-stage SCALES.json [--black-level DN] [--psf-model CAM.json] [--likelihood-walk N]]
+               [--likelihood-stage SCALES.json [--black-level DN] [--psf-model CAM.json] [--likelihood-walk N]
+                [--likelihood-pool]]
 
 Reads single-channel 8- or 16-bit PNG/TIFF frames (or float32 TIFF in [0, 1]) with OpenCV
 (``IMREAD_UNCHANGED``), runs :class:`tdfd.runtime.DepthRuntime` (no torch), prints a
@@ -24,7 +25,9 @@ in-focus ECVFL power for that depth) and, with ``-o``, writes:
 With ``--likelihood-stage`` the map is refined tile by tile by the likelihood stage
 (:mod:`tdfd.runtime_likelihood`: torch, seconds per pair), told the sensor's ``--black-level``
 and, with ``--psf-model CAM.json``, the lens's whole PSF a focus sweep measured
-(``tdfd calibrate --psf-model``) instead of profiling the family's shapes.
+(``tdfd calibrate --psf-model``) instead of profiling the family's shapes; with
+``--likelihood-pool`` its fused map is also pooled along the depth structure by the model's own
+structure pooling (:mod:`tdfd.dfd.stage_pooling`).
 
 Colour (3- or 4-channel) files are rejected: DFD needs the raw single-channel sensor
 frames (convert a colour image yourself if you must; gamma-encoded JPEG-like data is not
@@ -88,6 +91,10 @@ def register(subparsers: Any) -> None:
                    help="for --likelihood-stage: let a tile whose fit finds no minimum within 5 %% of the model's "
                         "depth move its search window up to N times; a walk that ends farther from the fitted "
                         "neighbours than the model's depth is undone (default 0; section psf_structure's notes)")
+    p.add_argument("--likelihood-pool", action="store_true",
+                   help="for --likelihood-stage: pool its fused map along the depth structure with the model's own "
+                        "structure pooling, each tile weighted by its fused confidence (tdfd.dfd.stage_pooling; "
+                        "section psf_structure)")
     p.add_argument("--psf-family", default="exported", metavar="FAMILY",
                    help="the lens's PSF family the model's CNN is told: gaussian, pillbox, unknown, a camera JSON "
                         "from 'tdfd calibrate' (its measured psf_family), or exported (default: the family the ONNX "
@@ -305,6 +312,8 @@ def run(args: argparse.Namespace) -> int:
     if args.likelihood_walk and not args.likelihood_stage:
         raise InputError("--likelihood-walk moves the likelihood stage's windows; give --likelihood-stage "
                          "SCALES.json too")
+    if args.likelihood_pool and not args.likelihood_stage:
+        raise InputError("--likelihood-pool pools the likelihood stage's map; give --likelihood-stage SCALES.json too")
     if args.likelihood_stage:
         if args.tiles:
             raise InputError("--likelihood-stage refines the depth map; it cannot be combined with --tiles")
@@ -314,7 +323,7 @@ def run(args: argparse.Namespace) -> int:
             float(np.iinfo(f1.dtype).max) if np.issubdtype(f1.dtype, np.integer) else 1.0)
         stage = stage_for_runtime(rt, args.likelihood_stage, args.black_level / white,
                                   psf_model=measured_psf_model(args.psf_model) if args.psf_model else None,
-                                  walk=args.likelihood_walk)
+                                  walk=args.likelihood_walk, pool=args.likelihood_pool)
         res = refine_result(rt, stage, f1, f2, res, args.white_level)
     h, w = res.depth.shape
     valid = res.valid(args.threshold)
@@ -341,8 +350,11 @@ def run(args: argparse.Namespace) -> int:
         path = write_depth(args.output, depth, conf, args.threshold)
         picture = colorize_depth(*full.depth_map, rt.camera.depth_range_m, args.threshold)
         pic = _write(path.with_name(path.stem + "_color.png"), lambda target: cv2.imwrite(str(target), picture))
-        kind = ("refined by the likelihood stage" if args.likelihood_stage else "pooled along the depth structure"
-                if out.depth_pooled is not None else "each tile's own estimate")
+        if args.likelihood_stage:
+            kind = "refined by the likelihood stage" + (", pooled along the depth structure" if args.likelihood_pool
+                                                        else "")
+        else:
+            kind = "pooled along the depth structure" if out.depth_pooled is not None else "each tile's own estimate"
         print(f"wrote {path} ({'x'.join(map(str, depth.shape))} "
               f"{'uint16 mm' if path.suffix.lower() == '.png' else 'float32 m'}; {kind}) and {pic}")
     return 0

@@ -7,8 +7,10 @@ lens's PSF family the CNN is told (``--psf-family``; unknown: every shape), or t
 focus sweep measured (``--psf-model CAM.json``, :mod:`tdfd.calibration.psf_model`), and the sigma factors
 of ``SCALES.json`` (``python -m training.fit_likelihood_stage``; the shipped model's:
 ``models/reference.likelihood.json``). The best map of the result (the pooled one, else the
-tiles') is replaced by the stage's fused map; each tile's own estimate stays as the file gave
-it. The stage is not in the ONNX graph (its cost is seconds per pair; docs/ARCHITECTURE.md).
+tiles') is replaced by the stage's fused map (with ``--likelihood-pool`` that map pooled along
+the depth structure by the file's own structure pooling, :mod:`tdfd.dfd.stage_pooling`); each
+tile's own estimate stays as the file gave it. The stage is not in the ONNX graph (its cost is
+seconds per pair; docs/ARCHITECTURE.md).
 
 The stage models neither focus breathing nor a camera other than the model's (its blur per
 inverse depth is the file's camera), so a file that registers breathing, or a runtime covering
@@ -29,6 +31,7 @@ from .dfd.inverse_variance import LikelihoodScales
 from .dfd.likelihood_stage import LikelihoodStage
 from .dfd.psf_hypotheses import PsfHypothesis
 from .errors import InputError, ModelError
+from .model.structure_pooling import StructurePooling
 from .runtime import DepthResult, DepthRuntime
 
 log = logging.getLogger(__name__)
@@ -42,7 +45,7 @@ _SCALES_HINT = {"measured": "fit the scales with --calibrated-psf, or use the sh
 
 
 def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: float = 0.0,
-                      psf_model: dict | None = None, walk: int = 0) -> LikelihoodStage:
+                      psf_model: dict | None = None, walk: int = 0, pool: bool = False) -> LikelihoodStage:
     """The likelihood stage for ``rt``'s file: its camera, grid, confidence scale and told family.
 
     Args:
@@ -55,13 +58,15 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
             are used with a warning.
         walk: how many times a fit whose minimum lies on its window's edge may move its window
             (:func:`~tdfd.dfd.seeded_fit.seeded_tile_fit`; 0: never).
+        pool: also pool the fused map along the depth structure with the file's own structure
+            pooling (its ``structure_pooling`` metadata; :mod:`tdfd.dfd.stage_pooling`).
 
     Raises:
         InputError: a file with focus breathing, a runtime for another camera, a bad black level
             or ``walk``.
         CameraError: a ``psf_model`` that is not valid.
-        ModelError: a scales file that cannot be read, or a file without a positive
-            ``confidence_scale`` in its metadata.
+        ModelError: a scales file that cannot be read, a file without a positive
+            ``confidence_scale`` in its metadata, or ``pool`` for a file without a structure pooling.
     """
     if rt.magnification_per_dpt:
         raise InputError(f"{rt.path.name} registers focus breathing, which the likelihood stage does not model")
@@ -74,6 +79,13 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
     b0 = meta.get("confidence_scale") if isinstance(meta, dict) else None
     if not isinstance(b0, (int, float)) or not b0 > 0:
         raise ModelError(f"{rt.path} has no positive confidence_scale in its {MODEL_KEY!r} metadata")
+    pooling = None
+    if pool:
+        options = meta.get("structure_pooling")
+        if not isinstance(options, dict):
+            raise ModelError(f"{rt.path} has no structure pooling in its {MODEL_KEY!r} metadata to pool the likelihood "
+                             f"stage's map with")
+        pooling = StructurePooling.from_config(options)
     hypotheses = None if psf_model is None else (PsfHypothesis.from_dict(psf_model),)
     scales = LikelihoodScales.load(scales_path)
     told = "profiled" if psf_model is None else "measured"
@@ -81,13 +93,14 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
         log.warning("%s was fitted for the stage with the PSF %s, this one has it %s: the fusion's weights and "
                     "confidences will be off (%s)", scales_path, scales.psf, told, _SCALES_HINT[told])
     return LikelihoodStage(rt.camera, rt.tile, rt.stride, float(b0), scales=scales,
-                           family=rt.psf_family, hypotheses=hypotheses, black_level=black_level, walk=walk)
+                           family=rt.psf_family, hypotheses=hypotheses, black_level=black_level, walk=walk,
+                           pooling=pooling)
 
 
 def refine_result(rt: DepthRuntime, stage: LikelihoodStage, image_f1: np.ndarray, image_f2: np.ndarray,
                   result: DepthResult, white_level: float | None = None) -> DepthResult:
     """``result`` (of ``rt`` on these frames, on the tile grid) with its best map refined by ``stage``
-    (a pair the runtime found to be no DFD pair keeps its map, at confidence 0).
+    (pooled, where the stage pools; a pair the runtime found to be no DFD pair keeps its map, at confidence 0).
 
     Raises:
         InputError: a result at full resolution, or one whose grid is not the frames'.
@@ -105,7 +118,8 @@ def refine_result(rt: DepthRuntime, stage: LikelihoodStage, image_f1: np.ndarray
     if stage.scales.shared_bias:
         log.info("likelihood stage: the model's bias removed, median %s %% in inverse depth per pair",
                  ", ".join(f"{100 * (np.exp(float(x.median())) - 1):+.2f}" for x in out.bias))
-    new_d, new_c = out.depth.numpy().copy(), out.confidence.numpy().copy()
+    best = out.depth if out.depth_pooled is None else out.depth_pooled
+    new_d, new_c = best.numpy().copy(), out.confidence.numpy().copy()
     for k, problem in enumerate(result.problems):  # no DFD pair: keep its map and its confidence 0
         if problem and k < len(new_d):
             new_d[k], new_c[k] = d[k].numpy(), c[k].numpy()

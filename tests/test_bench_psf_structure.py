@@ -13,19 +13,24 @@ from benchmarks.bench_psf_refused import refuse_planes
 from benchmarks.bench_psf_structure import bound_rows, difference_rows, main, merge_scenes, refuse_rows, target_rows
 from benchmarks.bench_structure import SCENE_ID_STEP
 from benchmarks.psf_stages import paired_with
+from benchmarks.stage_rows import refuse
+from tdfd.dfd.stage_pooling import pool_stage_map
+from tdfd.model.structure_pooling import StructurePooling
 from tdfd.dfd.inverse_variance import LikelihoodScales
 
 F64 = torch.float64
 
 
 def _scene(layout: str, scene: int, n: int = 40) -> dict:
-    """A scene whose calibrated stage errs 0.8 % at confidence 0.9, the bias stage 0.5 % at 0.9 and
-    the model 3 % at 0.1 (the last 10 tiles near an edge, every estimator 10 % off there)."""
+    """A scene whose calibrated stage errs 0.8 % at confidence 0.9, the bias stage 0.5 % at 0.9, their
+    pooled maps 0.7 % and 0.4 % at 0.9 and the model 3 % at 0.1 (the last 10 tiles near an edge,
+    every estimator 10 % off there)."""
     true = torch.full((n,), 0.5, dtype=F64)
     edge = torch.arange(n) >= n - 10
     row = {"layout": layout, "scene": scene, "true": true, "edge": edge,
            "bound_shared": torch.where(edge, math.nan, 0.004).to(F64)}
-    for k, err, conf in (("model", 0.03, 0.1), ("calibrated", 0.008, 0.9), (BIAS_STAGE, 0.005, 0.9)):
+    for k, err, conf in (("model", 0.03, 0.1), ("calibrated", 0.008, 0.9), (BIAS_STAGE, 0.005, 0.9),
+                         ("calibrated_pooled", 0.007, 0.9), (f"{BIAS_STAGE}_pooled", 0.004, 0.9)):
         row[k] = torch.where(edge, true * 1.1, true * (1 + err))
         row[f"{k}_conf"] = torch.full((n,), conf, dtype=F64)
     return row
@@ -44,7 +49,7 @@ def test_the_targets_are_judged_per_estimator_and_tile_set():
     rows = [_scene("slanted", i) for i in range(6)]
     table = target_rows(rows, reps=50)
     cells = {(r[0], r[1], r[2]): r for r in table}
-    assert len(table) == 2 * 2 * 3  # slanted and all layouts, two tile sets, three estimators
+    assert len(table) == 2 * 2 * 5  # slanted and all layouts, two tile sets, five estimators
     away = cells[("slanted", "away from edges", "calibrated")]
     assert away[3] == 180 and away[4].startswith("0.80 %") and away[5].startswith("100 %") and away[6] == "0.80 %"
     assert away[7:] == ["yes", "yes", "yes"]
@@ -60,6 +65,7 @@ def test_differences_and_the_bound_are_scored_away_from_edges():
     diff = {r[1]: r for r in difference_rows(rows, reps=20)}
     assert diff["away from edges"][2] == "-0.30 (-0.30 .. -0.30)"  # bias stage - calibrated
     assert diff["away from edges"][3].startswith("-2.20")  # calibrated - model
+    assert diff["away from edges"][5] == "-0.10 (-0.10 .. -0.10)"  # the bias stage pooled - the bias stage
     (layout, everything) = bound_rows(rows, 0.01)
     assert layout[:2] == ["layout", 120]
     at_bound = float(layout[2].split()[0]) / 100
@@ -96,6 +102,23 @@ def test_saved_fits_fused_again_follow_the_scales():
     assert float((r[BIAS_STAGE][fitted] / 0.5 - 1).abs().max()) < 0.003
     with pytest.raises(ValueError, match="no calibrated fits"):
         refuse_rows([_scene("slanted", 0, 20)], 0.01, fit_wins, model_wins)
+    assert r["calibrated_pooled"] is rows[0]["calibrated_pooled"]  # pooled again only when given the pooling
+
+
+def test_saved_fits_are_pooled_as_the_stage_pools_them():
+    g = _grids()
+    g["calibrated_depth_fit"] = g["calibrated_depth_fit"] * (1 + 0.01 * torch.arange(5.0))  # a slope across
+    rows = [{**_scene("slanted", 0, 20), "grids": g}]
+    scales, bias = LikelihoodScales(2.0, 1.0), LikelihoodScales(2.0, 1.0, shared_bias=True)
+    pooling = StructurePooling(radius=2, degree=2, curvature_test=1.0)
+    (r,) = refuse_rows(rows, 0.01, scales, bias, pooling)
+    for name, sc in (("calibrated", scales), (BIAS_STAGE, bias)):
+        d, c = refuse(g["calibrated_fitted"], g["calibrated_depth_fit"], g["calibrated_sigma_fit_raw"],
+                      g["calibrated_slope"], g["model"], g["model_conf"], 0.01, sc)
+        expected = pool_stage_map(d[None, None], c[None, None], 0.01, pooling)[0, 0]
+        torch.testing.assert_close(r[f"{name}_pooled"], expected.flatten().double())
+        assert torch.equal(r[f"{name}_pooled_conf"], r[f"{name}_conf"])  # the fused confidence, kept
+        assert not torch.equal(r[f"{name}_pooled"], r[name])
 
 
 def test_plane_fits_fused_again_follow_the_scales():

@@ -8,13 +8,18 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
 
 from tdfd.cli import main
+from tdfd.contract import MODEL_KEY
 from tdfd.depth_cli import _nice_ticks, colorize_depth, read_frame
+from tdfd.errors import ModelError
+from tdfd.runtime import DepthRuntime
+from tdfd.runtime_likelihood import stage_for_runtime
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -299,6 +304,30 @@ def test_likelihood_stage_refines_the_map_and_keeps_problems(plane_pairs, shippe
     _one_line_error(rc, err, "--likelihood-walk")
     rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--likelihood-stage", scales, "--likelihood-walk", "-1")
     _one_line_error(rc, err, "walk")
+    # --likelihood-pool: the stage's map pooled by the file's own structure pooling, only with the stage
+    rc, stdout, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--threshold", "0",
+                           "--likelihood-stage", scales, "--likelihood-pool", "-o", tmp_path / "pooled.npy")
+    assert rc == 0, err
+    assert "refined by the likelihood stage, pooled along the depth structure" in stdout
+    d3 = np.load(tmp_path / "pooled.npy")
+    assert not np.array_equal(d3, d1) and abs(float(np.median(d3[1:-1, 1:-1])) - truth) / truth < 0.03
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--likelihood-pool")
+    _one_line_error(rc, err, "--likelihood-pool")
+
+
+def test_the_stage_pools_with_the_files_own_pooling(shipped_onnx):
+    rt = DepthRuntime(shipped_onnx)
+    scales = ROOT / "models" / "reference.likelihood.json"
+    assert stage_for_runtime(rt, scales).pooling is None
+    stage = stage_for_runtime(rt, scales, pool=True)
+    assert stage.pooling.to_config() == rt.metadata[MODEL_KEY]["structure_pooling"]
+    bare = SimpleNamespace(**{k: getattr(rt, k) for k in ("magnification_per_dpt", "inverse_depth_offset_dpt", "camera",
+                                                          "tile", "stride", "psf_family", "path")},
+                           metadata={MODEL_KEY: {k: v for k, v in rt.metadata[MODEL_KEY].items()
+                                                 if k != "structure_pooling"}})
+    assert stage_for_runtime(bare, scales).pooling is None
+    with pytest.raises(ModelError, match="no structure pooling"):
+        stage_for_runtime(bare, scales, pool=True)
 
 
 def test_likelihood_stage_takes_the_measured_psf_model(plane_pairs, shipped_onnx, tmp_path, capsys, caplog):

@@ -23,7 +23,10 @@ grid the stage:
    states the fused sigma as a confidence on the model's scale, through a map of the fused
    scale fitted on the same training scenes (``scales.fused_scale``: the two errors are
    correlated, and the fit's sigma is not proportional to its error); a tile the fit adds
-   nothing to keeps the model's confidence.
+   nothing to keeps the model's confidence;
+5. with a ``pooling`` (opt-in), pools the fused map along the depth structure
+   (:mod:`tdfd.dfd.stage_pooling`: the model's own structure pooling, each tile weighted by its
+   fused confidence), into ``depth_pooled``; each tile's confidence stays its fused one.
 
 Tiles closer to the frame's edge than a kernel's half-width (where the residual is not valid)
 keep the model's estimate (without the image's bias, where it is removed) and confidence; so do
@@ -52,7 +55,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 from torch import nn
@@ -63,6 +66,7 @@ from ..grid import grid_shape
 from .inverse_variance import LikelihoodScales, confidence_from_sigma, fuse, model_sigma, tile_slope
 from .psf_hypotheses import WAVELENGTH_M, PsfHypothesis, psf_hypotheses
 from .shared_bias import bias_map
+from .stage_pooling import pool_stage_map
 from .seeded_fit import PROFILE_TILES, Q_STEP, SEED_WINDOW, inverse_depth_grid, kernel_side, seeded_tile_fit
 from .walk_gate import neighbour_consensus, walk_rejected
 
@@ -89,6 +93,9 @@ class LikelihoodStageResult:
             sigma factors.
         bias: ``(B, 1, h, w)`` float64, the model's bias in ``log q`` removed before the fusion
             (0 without ``scales.shared_bias``, or with too few fitted tiles).
+        depth_pooled: with a ``pooling``, ``depth`` pooled along the depth structure
+            (:func:`~tdfd.dfd.stage_pooling.pool_stage_map`; its confidence is ``confidence``);
+            ``None`` without.
     """
 
     depth: torch.Tensor
@@ -100,6 +107,7 @@ class LikelihoodStageResult:
     slope: torch.Tensor
     bias: torch.Tensor
     sigma_fit_raw: torch.Tensor
+    depth_pooled: torch.Tensor | None = None
 
 
 def valid_tiles(height: int, width: int, tile: int, stride: int, half: int) -> torch.Tensor:
@@ -178,7 +186,8 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
                      camera: Camera, *, tile: int, stride: int, confidence_scale: float,
                      scales: LikelihoodScales = LikelihoodScales(), hypotheses: tuple[PsfHypothesis, ...] | None = None,
                      black_level: float = 0.0, seed_window: float = SEED_WINDOW, q_step: float = Q_STEP,
-                     band: float = 0.25, max_kernel: int = 65, profile_tiles: int = PROFILE_TILES, walk: int = 0
+                     band: float = 0.25, max_kernel: int = 65, profile_tiles: int = PROFILE_TILES, walk: int = 0,
+                     pooling: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
                      ) -> LikelihoodStageResult:
     """The model's depth map refined by each tile's likelihood fit (see the module documentation).
 
@@ -198,6 +207,9 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
             sigma reaches past the window at two sigmas: the model's confident tiles keep theirs;
             a walk that ends farther from the fitted neighbours than its seed is undone,
             :mod:`tdfd.dfd.walk_gate`).
+        pooling: ``(inverse_depth, scale) -> inverse_depth`` (e.g. the model's
+            :class:`~tdfd.model.structure_pooling.StructurePooling`): also pool the fused map along the
+            depth structure (``depth_pooled``, :func:`~tdfd.dfd.stage_pooling.pool_stage_map`); ``None``: not.
 
     Returns:
         :class:`LikelihoodStageResult`.
@@ -258,7 +270,8 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
         chosen.append(fit.hypothesis)
     fitted = torch.zeros_like(depth, dtype=torch.bool)
     fitted[:, 0, ii, jj] = True
-    return LikelihoodStageResult(out_d, out_c, fit_d, fit_s, fitted, chosen, slopes, biases, fit_raw)
+    pooled = None if pooling is None else pool_stage_map(out_d, out_c, confidence_scale, pooling)
+    return LikelihoodStageResult(out_d, out_c, fit_d, fit_s, fitted, chosen, slopes, biases, fit_raw, pooled)
 
 
 class LikelihoodStage(nn.Module):
@@ -274,15 +287,20 @@ class LikelihoodStage(nn.Module):
         hypotheses: the PSFs to profile over instead of the family's, e.g. the one a focus sweep
             measured (:func:`tdfd.calibration.psf_model.psf_model_from_frames`, a camera file's
             ``psf_model``: :meth:`~tdfd.dfd.psf_hypotheses.PsfHypothesis.from_dict`).
-        black_level, seed_window, q_step, band, max_kernel, profile_tiles, walk: as for :func:`likelihood_stage`.
+        black_level, seed_window, q_step, band, max_kernel, profile_tiles, walk, pooling: as for
+            :func:`likelihood_stage`.
     """
 
     def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, confidence_scale: float = 0.01, *,
                  scales: LikelihoodScales = LikelihoodScales(), family: str | None = None,
                  wavelength_m: float = WAVELENGTH_M, hypotheses: Sequence[PsfHypothesis] | None = None,
                  black_level: float = 0.0, seed_window: float = SEED_WINDOW, q_step: float = Q_STEP,
-                 band: float = 0.25, max_kernel: int = 65, profile_tiles: int = PROFILE_TILES, walk: int = 0) -> None:
+                 band: float = 0.25, max_kernel: int = 65, profile_tiles: int = PROFILE_TILES, walk: int = 0,
+                 pooling: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None) -> None:
         super().__init__()
+        if pooling is not None and not callable(pooling):
+            raise InputError(f"pooling must be a callable (inverse_depth, scale) -> inverse_depth, got {pooling!r}")
+        self.pooling = pooling
         self.camera, self.tile, self.stride = camera, int(tile), int(stride)
         self.confidence_scale, self.scales = float(confidence_scale), scales
         if hypotheses is not None:
@@ -301,8 +319,17 @@ class LikelihoodStage(nn.Module):
             raise InputError(f"band must lie in (0, 0.5] cycles/px, got {band}")
 
     @classmethod
-    def for_model(cls, model: nn.Module, **kwargs) -> "LikelihoodStage":
-        """The stage for a :class:`~tdfd.model.DFDModel`'s camera, grid and confidence scale."""
+    def for_model(cls, model: nn.Module, pool: bool = False, **kwargs) -> "LikelihoodStage":
+        """The stage for a :class:`~tdfd.model.DFDModel`'s camera, grid and confidence scale; with
+        ``pool`` its fused map is also pooled by the model's own structure pooling.
+
+        Raises:
+            InputError: ``pool`` for a model without a structure pooling.
+        """
+        if pool:
+            if getattr(model, "structure_pooling", None) is None:
+                raise InputError("pool asks for the model's structure pooling, and this model has none")
+            kwargs["pooling"] = model.structure_pooling
         return cls(model.camera, model.tile, model.stride, model.confidence_scale, **kwargs)
 
     def forward(self, image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torch.Tensor,
@@ -312,4 +339,4 @@ class LikelihoodStage(nn.Module):
         with torch.no_grad():
             return likelihood_stage(image_f1, image_f2, depth, confidence, self.camera, tile=self.tile,
                                     stride=self.stride, confidence_scale=self.confidence_scale, scales=self.scales,
-                                    hypotheses=self.hypotheses, **options)
+                                    hypotheses=self.hypotheses, pooling=self.pooling, **options)
