@@ -66,7 +66,7 @@ def _scene(layout: str, scene: int, bound: float, err: float, conf: float, n: in
     keep.view(-1)[:n] = True
     row = {"layout": layout, "scene": scene, "true": true, "edge": edge, "grids": {"keep": keep},
            "bound_shared": torch.where(edge, math.nan, bound).to(F64)}
-    for k in ("model", "calibrated", BIAS_STAGE):
+    for k in ("model", "calibrated", BIAS_STAGE, "calibrated_pooled", f"{BIAS_STAGE}_pooled"):
         row[k] = true * (1 + err)
         row[f"{k}_conf"] = torch.full((n,), conf, dtype=F64)
     return row
