@@ -59,6 +59,7 @@ __all__ = ["ESTIMATORS", "TARGET_HEADER", "merge_scenes", "refuse_rows", "with_p
 #: the estimators scored, in the tables' order (``<stage>_pooled``: its fused map pooled along the depth structure,
 #: :func:`benchmarks.psf_stages.refuse_rows`)
 ESTIMATORS = ("model", "calibrated", BIAS_STAGE, *(f"{k}_pooled" for k in POOLED))
+#: the bias stage's map pooled along the depth structure (the pooled estimator the section's pairs and A/Bs compare)
 POOLED_BIAS = f"{BIAS_STAGE}_pooled"
 #: issue 19's structure targets: median error per tile, share at confidence >= 0.5, median error there
 MEDIAN_LIMIT, SHARE_LIMIT, CONFIDENT_LIMIT = 0.02, 0.5, 0.01
