@@ -30,6 +30,7 @@ from .contract import MODEL_KEY
 from .dfd.inverse_variance import LikelihoodScales
 from .dfd.likelihood_stage import LikelihoodStage
 from .dfd.psf_hypotheses import PsfHypothesis
+from .dfd.scene_ambiguity import ambiguity_cap
 from .errors import InputError, ModelError
 from .model.structure_pooling import StructurePooling
 from .runtime import DepthResult, DepthRuntime
@@ -45,7 +46,8 @@ _SCALES_HINT = {"measured": "fit the scales with --calibrated-psf, or use the sh
 
 
 def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: float = 0.0,
-                      psf_model: dict | None = None, walk: int = 0, pool: bool = False) -> LikelihoodStage:
+                      psf_model: dict | None = None, walk: int = 0, pool: bool = False,
+                      ambiguity: bool = False) -> LikelihoodStage:
     """The likelihood stage for ``rt``'s file: its camera, grid, confidence scale and told family.
 
     Args:
@@ -60,6 +62,8 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
             (:func:`~tdfd.dfd.seeded_fit.seeded_tile_fit`; 0: never).
         pool: also pool the fused map along the depth structure with the file's own structure
             pooling (its ``structure_pooling`` metadata; :mod:`tdfd.dfd.stage_pooling`).
+        ambiguity: also check each pair's fit against the likelihood over the whole range and cap
+            the confidences of a pair it does not tell (:mod:`tdfd.dfd.scene_ambiguity`).
 
     Raises:
         InputError: a file with focus breathing, a runtime for another camera, a bad black level
@@ -94,7 +98,7 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
                     "confidences will be off (%s)", scales_path, scales.psf, told, _SCALES_HINT[told])
     return LikelihoodStage(rt.camera, rt.tile, rt.stride, float(b0), scales=scales,
                            family=rt.psf_family, hypotheses=hypotheses, black_level=black_level, walk=walk,
-                           pooling=pooling)
+                           pooling=pooling, ambiguity=ambiguity)
 
 
 def refine_result(rt: DepthRuntime, stage: LikelihoodStage, image_f1: np.ndarray, image_f2: np.ndarray,
@@ -115,6 +119,11 @@ def refine_result(rt: DepthRuntime, stage: LikelihoodStage, image_f1: np.ndarray
     d = torch.from_numpy(np.asarray(depth, np.float32).reshape(grid).copy())
     c = torch.from_numpy(np.asarray(conf, np.float32).reshape(grid).copy())
     out = stage(torch.from_numpy(a), torch.from_numpy(b), d, c)
+    for k in range(len(out.scene_margin) if out.scene_margin is not None else 0):
+        if bool(out.ambiguous[k]):
+            log.warning("likelihood stage: pair %d is ambiguous (its likelihood prefers depths 10 %% from its fits: "
+                        "margin %.1f nats, e.g. a narrow-band or periodic texture); its confidences are capped at "
+                        "%.3f", k, float(out.scene_margin[k]), ambiguity_cap(stage.confidence_scale))
     if stage.scales.shared_bias:
         log.info("likelihood stage: the model's bias removed, median %s %% in inverse depth per pair",
                  ", ".join(f"{100 * (np.exp(float(x.median())) - 1):+.2f}" for x in out.bias))

@@ -19,7 +19,7 @@ from tdfd.contract import MODEL_KEY
 from tdfd.depth_cli import _nice_ticks, colorize_depth, read_frame
 from tdfd.errors import ModelError
 from tdfd.runtime import DepthRuntime
-from tdfd.runtime_likelihood import stage_for_runtime
+from tdfd.runtime_likelihood import refine_result, stage_for_runtime
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -313,6 +313,39 @@ def test_likelihood_stage_refines_the_map_and_keeps_problems(plane_pairs, shippe
     assert not np.array_equal(d3, d1) and abs(float(np.median(d3[1:-1, 1:-1])) - truth) / truth < 0.03
     rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--likelihood-pool")
     _one_line_error(rc, err, "--likelihood-pool")
+    # --likelihood-ambiguity: a textured plane's fit is not ambiguous, so the map stays the stage's; only
+    # with the stage
+    rc, stdout, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--threshold", "0",
+                           "--likelihood-stage", scales, "--likelihood-ambiguity", "-o", tmp_path / "checked.npy")
+    assert rc == 0, err
+    assert "ambiguous" not in err
+    np.testing.assert_array_equal(np.load(tmp_path / "checked.npy"), d1)
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--likelihood-ambiguity")
+    _one_line_error(rc, err, "--likelihood-ambiguity")
+
+
+def test_an_ambiguous_pair_keeps_its_map_with_capped_confidences(plane_pairs, shipped_onnx, monkeypatch, caplog):
+    """The runtime's stage with the ambiguity check: a pair it finds ambiguous (here every pair, by a
+    threshold no margin reaches) is logged and keeps its refined map, every confidence capped."""
+    import logging
+    import sys as _sys
+
+    from tdfd.dfd.scene_ambiguity import ambiguity_cap
+
+    f1, f2, _ = plane_pairs[0]
+    rt = DepthRuntime(shipped_onnx)
+    scales = ROOT / "models" / "reference.likelihood.json"
+    base = rt(f1, f2, white_level=4095, pooled=True)
+    plain = refine_result(rt, stage_for_runtime(rt, scales), f1, f2, base, 4095)
+    monkeypatch.setattr(_sys.modules["tdfd.dfd.likelihood_stage"], "AMBIGUITY_MARGIN", 1e12)
+    with caplog.at_level(logging.WARNING, logger="tdfd"):
+        checked = refine_result(rt, stage_for_runtime(rt, scales, ambiguity=True), f1, f2, base, 4095)
+    assert "pair 0 is ambiguous" in caplog.text
+    (d0, c0), (d1, c1) = plain.depth_map, checked.depth_map
+    np.testing.assert_array_equal(d0, d1)
+    cap = ambiguity_cap(rt.metadata[MODEL_KEY]["confidence_scale"])
+    np.testing.assert_allclose(c1, np.minimum(c0, cap), rtol=1e-6)
+    assert float(c0.max()) > cap
 
 
 def test_the_stage_pools_with_the_files_own_pooling(shipped_onnx):

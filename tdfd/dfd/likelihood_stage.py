@@ -26,7 +26,11 @@ grid the stage:
    nothing to keeps the model's confidence;
 5. with a ``pooling`` (opt-in), pools the fused map along the depth structure
    (:mod:`tdfd.dfd.stage_pooling`: the model's own structure pooling, each tile weighted by its
-   fused confidence), into ``depth_pooled``; each tile's confidence stays its fused one.
+   fused confidence), into ``depth_pooled``; each tile's confidence stays its fused one;
+6. with ``ambiguity`` (opt-in), checks each image's fit against the likelihood over the whole range
+   (:mod:`tdfd.dfd.scene_ambiguity`): an image whose most informative tiles fit a depth at least
+   10 % away better keeps its map, every confidence capped at the one that states a 10 % error
+   (before the pooling, so ``depth_pooled`` weighs its tiles alike).
 
 Tiles closer to the frame's edge than a kernel's half-width (where the residual is not valid)
 keep the model's estimate (without the image's bias, where it is removed) and confidence; so do
@@ -66,6 +70,7 @@ from ..grid import grid_shape
 from .inverse_variance import LikelihoodScales, confidence_from_sigma, fuse, model_sigma, tile_slope
 from .psf_hypotheses import WAVELENGTH_M, PsfHypothesis, psf_hypotheses
 from .shared_bias import bias_map
+from .scene_ambiguity import AMBIGUITY_MARGIN, ambiguity_cap, chosen_tiles, likelihood_margins
 from .stage_pooling import pool_stage_map
 from .seeded_fit import PROFILE_TILES, Q_STEP, SEED_WINDOW, inverse_depth_grid, kernel_side, seeded_tile_fit
 from .walk_gate import neighbour_consensus, walk_rejected
@@ -96,6 +101,11 @@ class LikelihoodStageResult:
         depth_pooled: with a ``pooling``, ``depth`` pooled along the depth structure
             (:func:`~tdfd.dfd.stage_pooling.pool_stage_map`; its confidence is ``confidence``);
             ``None`` without.
+        scene_margin: with ``ambiguity``, ``(B,)`` float64 each image's median log-likelihood margin
+            (nats) of its fitted depths over depths far from them
+            (:mod:`tdfd.dfd.scene_ambiguity`; ``inf`` for an image without a fit to doubt); an
+            image under :data:`~tdfd.dfd.scene_ambiguity.AMBIGUITY_MARGIN` is ambiguous and every
+            confidence of it is capped (:attr:`ambiguous`); ``None`` without the check.
     """
 
     depth: torch.Tensor
@@ -108,6 +118,14 @@ class LikelihoodStageResult:
     bias: torch.Tensor
     sigma_fit_raw: torch.Tensor
     depth_pooled: torch.Tensor | None = None
+    scene_margin: torch.Tensor | None = None
+
+
+    @property
+    def ambiguous(self) -> torch.Tensor | None:
+        """``(B,)`` bool: the images whose likelihood did not tell their fitted depths from depths
+        far from them (:attr:`scene_margin` under the threshold); ``None`` without the check."""
+        return None if self.scene_margin is None else self.scene_margin < AMBIGUITY_MARGIN
 
 
 def valid_tiles(height: int, width: int, tile: int, stride: int, half: int) -> torch.Tensor:
@@ -187,8 +205,8 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
                      scales: LikelihoodScales = LikelihoodScales(), hypotheses: tuple[PsfHypothesis, ...] | None = None,
                      black_level: float = 0.0, seed_window: float = SEED_WINDOW, q_step: float = Q_STEP,
                      band: float = 0.25, max_kernel: int = 65, profile_tiles: int = PROFILE_TILES, walk: int = 0,
-                     pooling: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
-                     ) -> LikelihoodStageResult:
+                     pooling: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+                     ambiguity: bool = False) -> LikelihoodStageResult:
     """The model's depth map refined by each tile's likelihood fit (see the module documentation).
 
     Args:
@@ -210,6 +228,11 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
         pooling: ``(inverse_depth, scale) -> inverse_depth`` (e.g. the model's
             :class:`~tdfd.model.structure_pooling.StructurePooling`): also pool the fused map along the
             depth structure (``depth_pooled``, :func:`~tdfd.dfd.stage_pooling.pool_stage_map`); ``None``: not.
+        ambiguity: also check each image's fit against the whole range
+            (:mod:`tdfd.dfd.scene_ambiguity`): an image whose likelihood prefers depths
+            :data:`~tdfd.dfd.scene_ambiguity.AMBIGUITY_FAR` from its fits keeps its map,
+            every confidence capped at the one that states that error
+            (:func:`~tdfd.dfd.scene_ambiguity.ambiguity_cap`).
 
     Returns:
         :class:`LikelihoodStageResult`.
@@ -237,6 +260,7 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
     slopes = torch.zeros_like(depth)
     chosen = []
     biases = torch.zeros(depth.shape, dtype=torch.float64)
+    margins = torch.full((b,), math.inf, dtype=torch.float64) if ambiguity else None
     for k in range(b):
         if not origins:
             chosen.append(hyps[0])
@@ -268,10 +292,18 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
         fit_s[k, 0, ii, jj] = (fit_raw[k, 0, ii, jj] * f_fit).to(depth.dtype)
         slopes[k, 0, ii, jj] = slope.to(depth.dtype)
         chosen.append(fit.hypothesis)
+        if margins is not None:
+            pick = chosen_tiles(fit.sigma_q)
+            if len(pick):
+                margins[k] = float(likelihood_margins(y1, y2, camera, fit.hypothesis, [origins[int(t)] for t in pick],
+                                                      tile, fit.q[pick], band=band, window=seed_window, step=q_step,
+                                                      max_kernel=max_kernel).median())
+            if margins[k] < AMBIGUITY_MARGIN:  # the whole image: its fits and the model's seeds alike
+                out_c[k] = out_c[k].clamp_max(ambiguity_cap(confidence_scale))
     fitted = torch.zeros_like(depth, dtype=torch.bool)
     fitted[:, 0, ii, jj] = True
     pooled = None if pooling is None else pool_stage_map(out_d, out_c, confidence_scale, pooling)
-    return LikelihoodStageResult(out_d, out_c, fit_d, fit_s, fitted, chosen, slopes, biases, fit_raw, pooled)
+    return LikelihoodStageResult(out_d, out_c, fit_d, fit_s, fitted, chosen, slopes, biases, fit_raw, pooled, margins)
 
 
 class LikelihoodStage(nn.Module):
@@ -287,7 +319,7 @@ class LikelihoodStage(nn.Module):
         hypotheses: the PSFs to profile over instead of the family's, e.g. the one a focus sweep
             measured (:func:`tdfd.calibration.psf_model.psf_model_from_frames`, a camera file's
             ``psf_model``: :meth:`~tdfd.dfd.psf_hypotheses.PsfHypothesis.from_dict`).
-        black_level, seed_window, q_step, band, max_kernel, profile_tiles, walk, pooling: as for
+        black_level, seed_window, q_step, band, max_kernel, profile_tiles, walk, pooling, ambiguity: as for
             :func:`likelihood_stage`.
     """
 
@@ -296,7 +328,8 @@ class LikelihoodStage(nn.Module):
                  wavelength_m: float = WAVELENGTH_M, hypotheses: Sequence[PsfHypothesis] | None = None,
                  black_level: float = 0.0, seed_window: float = SEED_WINDOW, q_step: float = Q_STEP,
                  band: float = 0.25, max_kernel: int = 65, profile_tiles: int = PROFILE_TILES, walk: int = 0,
-                 pooling: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None) -> None:
+                 pooling: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+                 ambiguity: bool = False) -> None:
         super().__init__()
         if pooling is not None and not callable(pooling):
             raise InputError(f"pooling must be a callable (inverse_depth, scale) -> inverse_depth, got {pooling!r}")
@@ -311,7 +344,7 @@ class LikelihoodStage(nn.Module):
             self.hypotheses = psf_hypotheses(camera, family, wavelength_m)
         self.options = dict(black_level=float(black_level), seed_window=float(seed_window), q_step=float(q_step),
                             band=float(band), max_kernel=int(max_kernel), profile_tiles=int(profile_tiles),
-                            walk=int(walk))
+                            walk=int(walk), ambiguity=bool(ambiguity))
         if walk < 0:
             raise InputError(f"walk must be >= 0, got {walk}")
         inverse_depth_grid(camera, seed_window, q_step)  # bad options fail here, not on the first pair
