@@ -120,7 +120,6 @@ class LikelihoodStageResult:
     depth_pooled: torch.Tensor | None = None
     scene_margin: torch.Tensor | None = None
 
-
     @property
     def ambiguous(self) -> torch.Tensor | None:
         """``(B,)`` bool: the images whose likelihood did not tell their fitted depths from depths
