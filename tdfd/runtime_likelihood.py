@@ -119,11 +119,10 @@ def refine_result(rt: DepthRuntime, stage: LikelihoodStage, image_f1: np.ndarray
     d = torch.from_numpy(np.asarray(depth, np.float32).reshape(grid).copy())
     c = torch.from_numpy(np.asarray(conf, np.float32).reshape(grid).copy())
     out = stage(torch.from_numpy(a), torch.from_numpy(b), d, c)
-    for k in range(len(out.scene_margin) if out.scene_margin is not None else 0):
-        if bool(out.ambiguous[k]):
-            log.warning("likelihood stage: pair %d is ambiguous (its likelihood prefers depths 10 %% from its fits: "
-                        "margin %.1f nats, e.g. a narrow-band or periodic texture); its confidences are capped at "
-                        "%.3f", k, float(out.scene_margin[k]), ambiguity_cap(stage.confidence_scale))
+    for k in ([] if out.ambiguous is None else out.ambiguous.nonzero().flatten().tolist()):
+        log.warning("likelihood stage: pair %d is ambiguous (its likelihood prefers depths 10 %% from its fits: "
+                    "margin %.1f nats, e.g. a narrow-band or periodic texture); its confidences are capped at "
+                    "%.3f", k, float(out.scene_margin[k]), ambiguity_cap(stage.confidence_scale))
     if stage.scales.shared_bias:
         log.info("likelihood stage: the model's bias removed, median %s %% in inverse depth per pair",
                  ", ".join(f"{100 * (np.exp(float(x.median())) - 1):+.2f}" for x in out.bias))

@@ -38,11 +38,10 @@ import torch
 
 from ..camera import Camera
 from ..errors import InputError, ShapeError
-from ..optics.thin_lens import camera_sigmas
 from .cross_residual import independent_bins, tile_cross_residual_nll
 from .inverse_variance import confidence_from_sigma
 from .psf_hypotheses import PsfHypothesis
-from .seeded_fit import Q_STEP, SEED_WINDOW, inverse_depth_grid, kernel_side
+from .seeded_fit import Q_STEP, SEED_WINDOW, inverse_depth_grid, kernel_pairs, kernel_side, seed_mask
 
 __all__ = ["AMBIGUITY_TILES", "AMBIGUITY_NEAR", "AMBIGUITY_FAR", "AMBIGUITY_MARGIN", "likelihood_margins",
            "chosen_tiles", "ambiguity_cap"]
@@ -94,15 +93,14 @@ def likelihood_margins(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, hypot
         return torch.zeros(0, dtype=torch.float64)
     grid = inverse_depth_grid(camera, window, step)[::2]
     size = kernel_side(camera, (hypothesis,), grid, max_kernel, tile)
-    sig = torch.stack([s.reshape(-1) for s in camera_sigmas(camera, 1.0 / grid)], 1).to(torch.float64)
-    ks = hypothesis.kernels(sig.reshape(-1), size).reshape(len(grid), 2, size, size)
+    ks = kernel_pairs(camera, hypothesis, grid, size)
     unit = torch.ones(len(origins), dtype=torch.float64)
     nll = tile_cross_residual_nll(y1, y2, ks[:, 0], ks[:, 1], unit, unit, origins, tile, band)  # (Q, T)
-    dist = (grid[:, None] - q_fit[None, :].to(torch.float64)).abs() / q_fit[None, :].to(torch.float64)
-    close = dist <= near
-    close[dist.argmin(0), torch.arange(len(origins))] = True  # at least the nearest hypothesis
+    q = q_fit.to(torch.float64)
+    close = seed_mask(grid, q, near)  # within near of the fit, at least the nearest hypothesis
+    far_away = (grid[:, None] - q[None, :]).abs() > far * q[None, :]
     at_fit = torch.where(close, nll, torch.full_like(nll, math.inf)).min(0).values
-    elsewhere = torch.where(dist > far, nll, torch.full_like(nll, math.inf)).min(0).values
+    elsewhere = torch.where(far_away, nll, torch.full_like(nll, math.inf)).min(0).values
     margin = independent_bins(tile, band) * torch.log(elsewhere / at_fit.clamp_min(1e-300))
     return torch.where(torch.isfinite(elsewhere), margin, torch.full_like(margin, math.inf))
 

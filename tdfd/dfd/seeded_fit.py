@@ -43,7 +43,7 @@ from .cross_residual import curvature_sigma, independent_bins, parabolic_minima,
 from .psf_hypotheses import PsfHypothesis
 
 __all__ = ["SEED_WINDOW", "Q_STEP", "PROFILE_TILES", "WALK_GAIN", "inverse_depth_grid", "seed_mask", "kernel_side",
-           "SeededFit", "seeded_tile_fit"]
+           "kernel_pairs", "SeededFit", "seeded_tile_fit"]
 
 #: The relative half-width of each tile's search around its seed.
 SEED_WINDOW = 0.05
@@ -110,6 +110,13 @@ def kernel_side(camera: Camera, hypotheses: Sequence[PsfHypothesis], grid: torch
         max_kernel = min(max_kernel, tile - 1 if tile % 2 == 0 else tile - 2)
     smax = max(float(s.abs().max()) for s in camera_sigmas(camera, 1.0 / grid))
     return min(max(h.kernel_size(smax) for h in hypotheses), max_kernel) | 1
+
+
+def kernel_pairs(camera: Camera, hypothesis: PsfHypothesis, q: torch.Tensor, size: int) -> torch.Tensor:
+    """``(Q, 2, size, size)`` float64: the two frames' kernels under ``hypothesis`` at each inverse
+    depth of ``q`` ``(Q,)`` (1/m), the camera's blurs (paper eqs. 1-7)."""
+    sig = torch.stack([s.reshape(-1) for s in camera_sigmas(camera, 1.0 / q)], 1).to(torch.float64)
+    return hypothesis.kernels(sig.reshape(-1), size).reshape(len(q), 2, size, size)
 
 
 @dataclass(frozen=True)
@@ -196,8 +203,7 @@ def seeded_tile_fit(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, origins:
         sub = torch.zeros_like(mask)  # the current windows (a walk moves some)
         sub[:, tiles] = mask[:, tiles]
         idx = sub.any(1).nonzero().flatten()
-        sig = torch.stack([s.reshape(-1) for s in camera_sigmas(camera, 1.0 / grid[idx])], 1).to(torch.float64)
-        ks = hyp.kernels(sig.reshape(-1), size).reshape(len(idx), 2, size, size)
+        ks = kernel_pairs(camera, hyp, grid[idx], size)
         nll = torch.full((len(grid), len(origins)), math.inf, dtype=torch.float64)
         nll[idx] = tile_cross_residual_nll(y1, y2, ks[:, 0], ks[:, 1], unit, unit, origins, tile, band,
                                            mask=sub[idx])
