@@ -3,7 +3,7 @@ r"""Issue 19's structure targets for the likelihood stage told each lens's PSF f
 Run from the repository root::
 
     .venv/bin/python -m benchmarks.bench_psf_structure [--scenes 128] [--frames-per-power 2]
-        [--sweep-chart dead_leaves] [--scales S.json] [--bias-scales S.json] [--walk N] [--no-write]
+        [--sweep-chart dead_leaves] [--scales S.json] [--bias-scales S.json] [--walk N] [--register] [--no-write]
         [--rows R.pt] [--from-rows R.pt [--paired-with BASE.pt] [--skip-scenes N]]
 
 The structure benchmark's scenes (section ``structure``: 480x640, seed 53000017, slanted planes,
@@ -241,6 +241,8 @@ def main(argv: list[str] | None = None) -> int:
                                                 "(default: MODEL.likelihood-calibrated.json)")
     p.add_argument("--bias-scales", default="", help="the scales that remove the model's bias "
                                                      "(default: MODEL.likelihood-calibrated-bias.json)")
+    p.add_argument("--register", action="store_true",
+                   help="the stage fits each pair's focus breathing and shift first (tdfd depth --likelihood-register)")
     p.add_argument("--walk", type=int, default=0, metavar="N",
                    help="let the stage move a window whose minimum lies on its edge up to N times (default 0)")
     p.add_argument("--paired-with", default="", metavar="ROWS.pt",
@@ -256,8 +258,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if not 1 <= args.scenes <= 1000 or args.frames_per_power < 1 or args.walk < 0:
         p.error("need 1 <= --scenes <= 1000, --frames-per-power >= 1 and --walk >= 0")
-    if args.walk and args.from_rows:
-        p.error("--from-rows fuses saved fits again; --walk needs new fits")
+    if (args.walk or args.register) and args.from_rows:
+        p.error("--from-rows fuses saved fits again; --walk and --register need new fits")
     if (args.paired_with or args.skip_scenes) and not args.from_rows:
         p.error("--paired-with and --skip-scenes score saved rows: give --from-rows")
     if not 0 <= args.skip_scenes < args.scenes:
@@ -291,7 +293,8 @@ def main(argv: list[str] | None = None) -> int:
             return 0
     else:  # the profiled stage's scales are not used: only the calibrated stage runs
         rows = structure_rows(model, (scales, scales), args.scenes, args.frames_per_power, args.sweep_chart,
-                              bias_scales, stages=("calibrated",), bound=True, walk=args.walk)
+                              bias_scales, stages=("calibrated",), bound=True, walk=args.walk,
+                              register=args.register)
     # the pooled stages (and, on saved fits, the fusion with these scales)
     rows = refuse_rows(rows, model.confidence_scale, scales, bias_scales, model.structure_pooling)
     wall = time.perf_counter() - t0
@@ -310,6 +313,7 @@ def main(argv: list[str] | None = None) -> int:
         f"`structure`); wall time {wall:.0f} s"
         + (" (the fits a full run saved, fused again with these scales: `--from-rows`)" if args.from_rows else "")
         + (f"; the stage's windows walk up to {args.walk} times" if args.walk else "")
+        + ("; the stage fits each pair's breathing and shift first" if args.register else "")
         + ". Each scene's lens calibrated from its own simulated sweep "
         f"(`{args.sweep_chart}` chart, {args.frames_per_power} frame(s) per power: section `psf_model`'s sweeps). "
         f"`model`: the shipped model's pooled map; `calibrated`: the likelihood stage told the sweep's PSF, scales "

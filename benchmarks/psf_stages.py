@@ -55,23 +55,26 @@ def _hypothesis(lens: PSFModel) -> PsfHypothesis:
 
 
 def stages_for(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], fit: PsfModelFit, lens: PSFModel,
-               names: tuple[str, ...] = STAGES, walk: int = 0) -> dict[str, LikelihoodStage]:
+               names: tuple[str, ...] = STAGES, walk: int = 0, register: bool = False) -> dict[str, LikelihoodStage]:
     """The stages ``names`` (of :data:`STAGES`) for one lens; ``scales``: the profiled stage's, the measured PSF's;
-    ``walk``: each stage's window moves (:class:`~tdfd.dfd.likelihood_stage.LikelihoodStage`)."""
+    ``walk``: each stage's window moves; ``register``: each stage fits the pair's breathing and shift
+    (:class:`~tdfd.dfd.likelihood_stage.LikelihoodStage`)."""
     shipped, measured = scales
-    make = {"profiled": lambda: LikelihoodStage.for_model(model, scales=shipped, walk=walk),
+    make = {"profiled": lambda: LikelihoodStage.for_model(model, scales=shipped, walk=walk, register=register),
             "calibrated_shipped_scales": lambda: LikelihoodStage.for_model(model, scales=shipped,
-                                                                           hypotheses=(fit.hypothesis,), walk=walk),
+                                                                           hypotheses=(fit.hypothesis,), walk=walk,
+                                                                           register=register),
             "calibrated": lambda: LikelihoodStage.for_model(model, scales=measured, hypotheses=(fit.hypothesis,),
-                                                            walk=walk),
+                                                            walk=walk, register=register),
             "told": lambda: LikelihoodStage.for_model(model, scales=measured, hypotheses=(_hypothesis(lens),),
-                                                      walk=walk)}
+                                                      walk=walk, register=register)}
     return {name: make[name]() for name in names}
 
 
 def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], scenes: int,
                    frames_per_power: int, chart: str = SWEEP_CHART, bias_scales: LikelihoodScales | None = None,
-                   stages: tuple[str, ...] = STAGES, bound: bool = False, walk: int = 0) -> list[dict]:
+                   stages: tuple[str, ...] = STAGES, bound: bool = False, walk: int = 0,
+                   register: bool = False) -> list[dict]:
     """Per 480x640 structure scene (the first ``scenes`` per layout, each one's lens calibrated
     from its own sweep): its tiles in the working range, their true, model and each of ``stages``'
     depth and confidence (with ``bias_scales`` :data:`BIAS_STAGE`'s too, from the ``calibrated``
@@ -80,7 +83,8 @@ def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodSc
     :func:`benchmarks.depth_edges.edge_tiles`) and with ``bound`` ``bound_shared``: the tile's
     relative depth standard deviation at the Cramér-Rao reference of section ``structure``
     (:func:`benchmarks.bench_bound.tile_fisher`, the PSF shared by the image; NaN near edges).
-    ``walk``: the stages' window moves (:func:`tdfd.dfd.seeded_fit.seeded_tile_fit`).
+    ``walk``: the stages' window moves (:func:`tdfd.dfd.seeded_fit.seeded_tile_fit`); ``register``: the
+    stages fit each pair's breathing and shift (:mod:`tdfd.dfd.pair_registration`).
 
     Raises:
         ValueError: ``scenes`` over 1000 (the sweeps' seeds of two layouts would meet), or
@@ -110,7 +114,7 @@ def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodSc
             row = {"layout": layout, "scene": i, "true": true[keep], "edge": edge[keep],
                    "model": depth[0, 0][keep].double(), "model_conf": conf[0, 0][keep].double(),
                    "grids": {"keep": keep, "model": depth[0, 0], "model_conf": conf[0, 0]}}
-            for name, stage in stages_for(model, scales, fit, lens, stages, walk).items():
+            for name, stage in stages_for(model, scales, fit, lens, stages, walk, register).items():
                 r = stage(i1, i2, depth, conf, black_level=black_levels(b["params"])[0])
                 row[name] = r.depth[0, 0][keep].double()
                 row[f"{name}_conf"] = r.confidence[0, 0][keep].double()

@@ -6,7 +6,7 @@ r"""``tdfd depth``: depth from a DFD pair of image files with the exported ONNX 
                [--full-resolution] [--threshold C] [--centre FRACTION] [--threads T]
                [--psf-family gaussian|pillbox|unknown|CAM.json] [--tiles]
                [--likelihood-stage SCALES.json [--black-level DN] [--psf-model CAM.json] [--likelihood-walk N]
-                [--likelihood-pool] [--likelihood-ambiguity]]
+                [--likelihood-pool] [--likelihood-ambiguity] [--likelihood-register]]
 
 Reads single-channel 8- or 16-bit PNG/TIFF frames (or float32 TIFF in [0, 1]) with OpenCV
 (``IMREAD_UNCHANGED``), runs :class:`tdfd.runtime.DepthRuntime` (no torch), prints a
@@ -29,7 +29,9 @@ and, with ``--psf-model CAM.json``, the lens's whole PSF a focus sweep measured
 ``--likelihood-pool`` its fused map is also pooled along the depth structure by the model's own
 structure pooling (:mod:`tdfd.dfd.stage_pooling`); with ``--likelihood-ambiguity`` a pair whose
 likelihood prefers depths 10 % from its fits (narrow-band or periodic textures) keeps its map
-with every confidence capped (:mod:`tdfd.dfd.scene_ambiguity`).
+with every confidence capped (:mod:`tdfd.dfd.scene_ambiguity`); with ``--likelihood-register`` the
+stage fits each pair's focus breathing and shift to its own likelihood first
+(:mod:`tdfd.dfd.pair_registration`).
 
 Colour (3- or 4-channel) files are rejected: DFD needs the raw single-channel sensor
 frames (convert a colour image yourself if you must; gamma-encoded JPEG-like data is not
@@ -101,6 +103,10 @@ def register(subparsers: Any) -> None:
                    help="for --likelihood-stage: check each pair's fit against its likelihood over the whole depth "
                         "range and cap every confidence of a pair whose likelihood prefers depths 10 %% from its fits "
                         "(tdfd.dfd.scene_ambiguity; section psf_structure's notes)")
+    p.add_argument("--likelihood-register", action="store_true",
+                   help="for --likelihood-stage: fit each pair's focus breathing and sub-pixel shift to its own "
+                        "likelihood before the fit (tdfd.dfd.pair_registration; section psf_structure's notes); "
+                        "needed for a model file that registers breathing")
     p.add_argument("--psf-family", default="exported", metavar="FAMILY",
                    help="the lens's PSF family the model's CNN is told: gaussian, pillbox, unknown, a camera JSON "
                         "from 'tdfd calibrate' (its measured psf_family), or exported (default: the family the ONNX "
@@ -323,6 +329,9 @@ def run(args: argparse.Namespace) -> int:
     if args.likelihood_ambiguity and not args.likelihood_stage:
         raise InputError("--likelihood-ambiguity checks the likelihood stage's fit; give --likelihood-stage SCALES.json "
                          "too")
+    if args.likelihood_register and not args.likelihood_stage:
+        raise InputError("--likelihood-register registers the pair for the likelihood stage; give --likelihood-stage "
+                         "SCALES.json too")
     if args.likelihood_stage:
         if args.tiles:
             raise InputError("--likelihood-stage refines the depth map; it cannot be combined with --tiles")
@@ -333,7 +342,7 @@ def run(args: argparse.Namespace) -> int:
         stage = stage_for_runtime(rt, args.likelihood_stage, args.black_level / white,
                                   psf_model=measured_psf_model(args.psf_model) if args.psf_model else None,
                                   walk=args.likelihood_walk, pool=args.likelihood_pool,
-                                  ambiguity=args.likelihood_ambiguity)
+                                  ambiguity=args.likelihood_ambiguity, register=args.likelihood_register)
         res = refine_result(rt, stage, f1, f2, res, args.white_level)
     h, w = res.depth.shape
     valid = res.valid(args.threshold)

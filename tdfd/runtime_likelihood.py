@@ -47,7 +47,7 @@ _SCALES_HINT = {"measured": "fit the scales with --calibrated-psf, or use the sh
 
 def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: float = 0.0,
                       psf_model: dict | None = None, walk: int = 0, pool: bool = False,
-                      ambiguity: bool = False) -> LikelihoodStage:
+                      ambiguity: bool = False, register: bool = False) -> LikelihoodStage:
     """The likelihood stage for ``rt``'s file: its camera, grid, confidence scale and told family.
 
     Args:
@@ -64,16 +64,19 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
             pooling (its ``structure_pooling`` metadata; :mod:`tdfd.dfd.stage_pooling`).
         ambiguity: also check each pair's fit against the likelihood over the whole range and cap
             the confidences of a pair it does not tell (:mod:`tdfd.dfd.scene_ambiguity`).
+        register: fit each pair's focus breathing and shift to its own likelihood before the fit
+            (:mod:`tdfd.dfd.pair_registration`); a file that registers breathing needs it.
 
     Raises:
-        InputError: a file with focus breathing, a runtime for another camera, a bad black level
+        InputError: a file with focus breathing without ``register``, a runtime for another camera, a bad black level
             or ``walk``.
         CameraError: a ``psf_model`` that is not valid.
         ModelError: a scales file that cannot be read, a file without a positive
             ``confidence_scale`` in its metadata, or ``pool`` for a file without a structure pooling.
     """
-    if rt.magnification_per_dpt:
-        raise InputError(f"{rt.path.name} registers focus breathing, which the likelihood stage does not model")
+    if rt.magnification_per_dpt and not register:
+        raise InputError(f"{rt.path.name} registers focus breathing, which the likelihood stage models only when it "
+                         f"fits each pair's registration itself (register, tdfd depth --likelihood-register)")
     if rt.inverse_depth_offset_dpt:
         raise InputError(f"the runtime covers camera {rt.camera.name!r} with another camera's model; the likelihood "
                          f"stage needs the model's own camera")
@@ -98,7 +101,7 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
                     "confidences will be off (%s)", scales_path, scales.psf, told, _SCALES_HINT[told])
     return LikelihoodStage(rt.camera, rt.tile, rt.stride, float(b0), scales=scales,
                            family=rt.psf_family, hypotheses=hypotheses, black_level=black_level, walk=walk,
-                           pooling=pooling, ambiguity=ambiguity)
+                           pooling=pooling, ambiguity=ambiguity, register=register)
 
 
 def refine_result(rt: DepthRuntime, stage: LikelihoodStage, image_f1: np.ndarray, image_f2: np.ndarray,
@@ -123,6 +126,10 @@ def refine_result(rt: DepthRuntime, stage: LikelihoodStage, image_f1: np.ndarray
         log.warning("likelihood stage: pair %d is ambiguous (its likelihood prefers depths 10 %% from its fits: "
                     "margin %.1f nats, e.g. a narrow-band or periodic texture); its confidences are capped at "
                     "%.3f", k, float(out.scene_margin[k]), ambiguity_cap(stage.confidence_scale))
+    if out.registration is not None:
+        for k, (beta, dr, dc) in enumerate(out.registration.tolist()):
+            log.info("likelihood stage: pair %d registered: frame 2 magnified by %+.4f %%, shifted by "
+                     "(%+.2f, %+.2f) px", k, 100 * beta, dr, dc)
     if stage.scales.shared_bias:
         log.info("likelihood stage: the model's bias removed, median %s %% in inverse depth per pair",
                  ", ".join(f"{100 * (np.exp(float(x.median())) - 1):+.2f}" for x in out.bias))

@@ -17,7 +17,7 @@ import pytest
 from tdfd.cli import main
 from tdfd.contract import MODEL_KEY
 from tdfd.depth_cli import _nice_ticks, colorize_depth, read_frame
-from tdfd.errors import ModelError
+from tdfd.errors import InputError, ModelError
 from tdfd.runtime import DepthRuntime
 from tdfd.runtime_likelihood import refine_result, stage_for_runtime
 
@@ -322,6 +322,13 @@ def test_likelihood_stage_refines_the_map_and_keeps_problems(plane_pairs, shippe
     np.testing.assert_array_equal(np.load(tmp_path / "checked.npy"), d1)
     rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--likelihood-ambiguity")
     _one_line_error(rc, err, "--likelihood-ambiguity")
+    # --likelihood-register: the pair is registered already, so the plane's depth stays; only with the stage
+    rc, stdout, err = _run(capsys, a, b, "--model", shipped_onnx, "--white-level", "4095", "--threshold", "0",
+                           "--likelihood-stage", scales, "--likelihood-register", "-o", tmp_path / "registered.npy")
+    assert rc == 0, err
+    assert abs(float(np.median(np.load(tmp_path / "registered.npy")[1:-1, 1:-1])) - truth) / truth < 0.03
+    rc, _, err = _run(capsys, a, b, "--model", shipped_onnx, "--likelihood-register")
+    _one_line_error(rc, err, "--likelihood-register")
 
 
 def test_an_ambiguous_pair_keeps_its_map_with_capped_confidences(plane_pairs, shipped_onnx, monkeypatch, caplog):
@@ -361,6 +368,18 @@ def test_the_stage_pools_with_the_files_own_pooling(shipped_onnx):
     assert stage_for_runtime(bare, scales).pooling is None
     with pytest.raises(ModelError, match="no structure pooling"):
         stage_for_runtime(bare, scales, pool=True)
+
+
+def test_a_file_that_registers_breathing_needs_the_stages_own_registration(shipped_onnx):
+    rt = DepthRuntime(shipped_onnx)
+    scales = ROOT / "models" / "reference.likelihood.json"
+    breathing = SimpleNamespace(**{k: getattr(rt, k) for k in ("inverse_depth_offset_dpt", "camera", "tile", "stride",
+                                                               "psf_family", "path", "metadata")},
+                                magnification_per_dpt=0.004)
+    with pytest.raises(InputError, match="likelihood-register"):
+        stage_for_runtime(breathing, scales)
+    assert stage_for_runtime(breathing, scales, register=True).options["register"] is True
+    assert stage_for_runtime(rt, scales).options["register"] is False
 
 
 def test_likelihood_stage_takes_the_measured_psf_model(plane_pairs, shipped_onnx, tmp_path, capsys, caplog):

@@ -209,7 +209,7 @@ def cross_residual_nll(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor, k2:
 def tile_cross_residual_nll(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor, k2: torch.Tensor,
                             nu1: torch.Tensor, nu2: torch.Tensor, origins: Sequence[tuple[int, int]], tile: int,
                             band: float = 0.25, fraction: float = TAPER_FRACTION, chunk: int = 256,
-                            mask: torch.Tensor | None = None) -> torch.Tensor:
+                            mask: torch.Tensor | None = None, shift: torch.Tensor | None = None) -> torch.Tensor:
     """:func:`cross_residual_nll` of each tile of the frame's residual.
 
     Each tile's residual is the valid part of the circular convolutions of its own region, the
@@ -225,6 +225,12 @@ def tile_cross_residual_nll(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor
         fraction: the tiles' Tukey taper (see :func:`tukey_window`).
         chunk: (hypothesis, tile) pairs per pass (memory).
         mask: ``(Q, T)`` bool, the pairs to evaluate (``None``: all); the others are ``inf``.
+        shift: ``(T, 2)`` px (row, column), where each tile's content lies in frame 2 relative to
+            frame 1 (focus breathing and misregistration, :func:`tdfd.warp.misregister`: a scene
+            point at ``p`` in frame 1 lies at ``p + shift`` in frame 2); ``None``: registered.
+            Frame 2's region is moved back by a phase ramp on its spectrum (exact for the
+            band-limited frame, and the noise stays white: nothing is interpolated); at most
+            a kernel's half-width (the region's margin).
 
     Returns:
         ``(Q, T)`` float64; about 1 at each tile's true hypothesis.
@@ -248,6 +254,11 @@ def tile_cross_residual_nll(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor
         raise InputError(f"mask must be a ({k1.shape[0]}, {n_t}) bool tensor, got {tuple(mask.shape)} {mask.dtype}")
     h, w = y1.shape
     half = k1.shape[-1] // 2
+    if shift is not None and (shift.shape != (n_t, 2) or not bool(torch.isfinite(shift).all())
+                              or bool((shift.abs() > half).any())):
+        raise InputError(f"shift must be ({n_t}, 2) finite px of at most a kernel's half-width ({half} px), got "
+                         f"{tuple(shift.shape)}" + ("" if shift.shape != (n_t, 2) else
+                                                    f" up to {float(shift.abs().max()):.3g} px"))
     for r, c in origins:
         if r < half or c < half or r + tile > h - half or c + tile > w - half:
             raise ShapeError(f"tile at ({r}, {c}) of {tile} px leaves the valid residual of a {h}x{w} frame and "
@@ -265,6 +276,11 @@ def tile_cross_residual_nll(y1: torch.Tensor, y2: torch.Tensor, k1: torch.Tensor
     y1, y2, k1, k2 = (t.to(torch.float64) for t in (y1, y2, k1, k2))
     F1 = torch.fft.rfft2(y1[rows[:, :, None], cols[:, None, :]])  # (T, m, m // 2 + 1)
     F2 = torch.fft.rfft2(y2[rows[:, :, None], cols[:, None, :]])
+    if shift is not None:  # g(x) = f2(x + shift): frame 2 registered onto frame 1
+        fr, fc = torch.fft.fftfreq(m, dtype=torch.float64), torch.fft.rfftfreq(m, dtype=torch.float64)
+        sh = shift.to(torch.float64)
+        F2 = F2 * torch.exp(2j * math.pi * (fr[None, :, None] * sh[:, 0, None, None]
+                                            + fc[None, None, :] * sh[:, 1, None, None]))
     used = pairs[:, 0].unique()
     slot = torch.full((k1.shape[0],), -1, dtype=torch.long)
     slot[used] = torch.arange(len(used))

@@ -30,15 +30,18 @@ grid the stage:
 6. with ``ambiguity`` (opt-in), checks each image's fit against the likelihood over the whole range
    (:mod:`tdfd.dfd.scene_ambiguity`): an image whose most informative tiles fit a depth at least
    10 % away better keeps its map, every confidence capped at the one that states a 10 % error
-   (before the pooling, so ``depth_pooled`` weighs its tiles alike).
+   (before the pooling, so ``depth_pooled`` weighs its tiles alike);
+7. with ``register`` (opt-in), fits the pair's focus breathing and shift to its own likelihood
+   (:mod:`tdfd.dfd.pair_registration`), alternating with the tiles' fits, and fits every tile
+   again with frame 2 moved back by its tile's shift (steps 2-6 then use that fit).
 
 Tiles closer to the frame's edge than a kernel's half-width (where the residual is not valid)
 keep the model's estimate (without the image's bias, where it is removed) and confidence; so do
-tiles whose fit has no minimum inside its window. The stage models neither breathing nor
-misregistration nor vignetting: register the frames first where they matter
-(:mod:`tdfd.registration`). Its cost grows with the hypotheses (12 without a measured family, 2
-with one) and the spread of depths in the frame: see
-``docs/BENCHMARKS.md``, section ``likelihood_stage``.
+tiles whose fit has no minimum inside its window. Without ``register`` the stage models neither
+breathing nor misregistration (register the frames first where they matter,
+:mod:`tdfd.registration`, or fit them with ``register``); it never models vignetting. Its cost
+grows with the hypotheses (12 without a measured family, 2 with one) and the spread of depths in
+the frame: see ``docs/BENCHMARKS.md``, section ``likelihood_stage``.
 
 Example:
     >>> import torch
@@ -69,13 +72,18 @@ from ..errors import InputError, NonFiniteError, ShapeError
 from ..grid import grid_shape
 from .inverse_variance import LikelihoodScales, confidence_from_sigma, fuse, model_sigma, tile_slope
 from .psf_hypotheses import WAVELENGTH_M, PsfHypothesis, psf_hypotheses
+from .pair_registration import BREATHING_SCAN, SHIFT_SCAN_PX, fit_pair_registration, tile_shifts
 from .shared_bias import bias_map
 from .scene_ambiguity import AMBIGUITY_MARGIN, ambiguity_cap, chosen_tiles, likelihood_margins
 from .stage_pooling import pool_stage_map
 from .seeded_fit import PROFILE_TILES, Q_STEP, SEED_WINDOW, inverse_depth_grid, kernel_side, seeded_tile_fit
 from .walk_gate import neighbour_consensus, walk_rejected
 
-__all__ = ["LikelihoodStageResult", "valid_tiles", "fuse_with_fit", "likelihood_stage", "LikelihoodStage"]
+#: with ``register``: fit, register, fit registered, register again (a fit off by the breathing's
+#: bias profiles the registration's likelihood away from the tiles' depths), then the final fit
+REGISTRATION_PASSES = 2
+
+__all__ = ["REGISTRATION_PASSES", "LikelihoodStageResult", "valid_tiles", "fuse_with_fit", "likelihood_stage", "LikelihoodStage"]
 
 
 @dataclass
@@ -106,6 +114,9 @@ class LikelihoodStageResult:
             (:mod:`tdfd.dfd.scene_ambiguity`; ``inf`` for an image without a fit to doubt); an
             image under :data:`~tdfd.dfd.scene_ambiguity.AMBIGUITY_MARGIN` is ambiguous and every
             confidence of it is capped (:attr:`ambiguous`); ``None`` without the check.
+        registration: with ``register``, ``(B, 3)`` float64 each pair's fitted ``(beta, d_row,
+            d_col)``: frame 2's breathing and shift (px) against frame 1
+            (:mod:`tdfd.dfd.pair_registration`); ``None`` without.
     """
 
     depth: torch.Tensor
@@ -119,6 +130,7 @@ class LikelihoodStageResult:
     sigma_fit_raw: torch.Tensor
     depth_pooled: torch.Tensor | None = None
     scene_margin: torch.Tensor | None = None
+    registration: torch.Tensor | None = None
 
     @property
     def ambiguous(self) -> torch.Tensor | None:
@@ -205,7 +217,7 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
                      black_level: float = 0.0, seed_window: float = SEED_WINDOW, q_step: float = Q_STEP,
                      band: float = 0.25, max_kernel: int = 65, profile_tiles: int = PROFILE_TILES, walk: int = 0,
                      pooling: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
-                     ambiguity: bool = False) -> LikelihoodStageResult:
+                     ambiguity: bool = False, register: bool = False) -> LikelihoodStageResult:
     """The model's depth map refined by each tile's likelihood fit (see the module documentation).
 
     Args:
@@ -232,6 +244,11 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
             :data:`~tdfd.dfd.scene_ambiguity.AMBIGUITY_FAR` from its fits keeps its map,
             every confidence capped at the one that states that error
             (:func:`~tdfd.dfd.scene_ambiguity.ambiguity_cap`).
+        register: fit each pair's focus breathing and shift to its own likelihood before the
+            final fit (:mod:`tdfd.dfd.pair_registration`: :data:`REGISTRATION_PASSES` times a fit
+            without a walk, registered as far as known, and the registration on its most
+            informative tiles; then the fit with frame 2 moved back by each tile's shift); the breathing is searched only as far as the tiles' margins (a
+            kernel's half-width) hold the shift of the tile farthest from the centre.
 
     Returns:
         :class:`LikelihoodStageResult`.
@@ -260,6 +277,14 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
     chosen = []
     biases = torch.zeros(depth.shape, dtype=torch.float64)
     margins = torch.full((b,), math.inf, dtype=torch.float64) if ambiguity else None
+    registrations = torch.zeros(b, 3, dtype=torch.float64) if register else None
+    if register and origins:
+        reach = float((torch.tensor([[r + (tile - 1) / 2 - (height - 1) / 2, c + (tile - 1) / 2 - (width - 1) / 2]
+                                     for r, c in origins]).abs().amax(0)).max())
+        breathing_scan = min(BREATHING_SCAN, (half - SHIFT_SCAN_PX) / max(reach, 1.0))
+        if breathing_scan <= 0:
+            raise InputError(f"register needs kernels wider than twice the shift scan ({SHIFT_SCAN_PX} px); their "
+                             f"half-width is {half} px")
     for k in range(b):
         if not origins:
             chosen.append(hyps[0])
@@ -271,9 +296,19 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
         y2 = y2 * (m1 / m2)
         seed = 1.0 / depth[k, 0, ii, jj].to(torch.float64)
         slope = tile_slope(1.0 / depth[k, 0].to(torch.float64))[ii, jj]
+        shift = None
+        for _ in range(REGISTRATION_PASSES if registrations is not None else 0):
+            # a fit (registered as far as known), the pair's registration from its informative tiles
+            first = seeded_tile_fit(y1, y2, camera, origins, tile, seed, hyps, window=seed_window, step=q_step,
+                                    band=band, max_kernel=max_kernel, profile_tiles=profile_tiles,
+                                    profile_by=confidence[k, 0, ii, jj], shift=shift)
+            registrations[k] = fit_pair_registration(y1, y2, camera, first.hypothesis, origins, tile, first.q,
+                                                     first.sigma_q, band=band, max_kernel=max_kernel,
+                                                     breathing_scan=breathing_scan)
+            shift = tile_shifts(registrations[k], origins, tile, (height, width))
         fit = seeded_tile_fit(y1, y2, camera, origins, tile, seed, hyps, window=seed_window, step=q_step, band=band,
                               max_kernel=max_kernel, profile_tiles=profile_tiles, profile_by=confidence[k, 0, ii, jj],
-                              walk=walk, walk_tiles=2.0 * sigma_m[k, 0, ii, jj] > seed_window)
+                              walk=walk, walk_tiles=2.0 * sigma_m[k, 0, ii, jj] > seed_window, shift=shift)
         if fit.unwalked is not None:  # a walk away from the fitted neighbours is a drift: back to the first fit
             first = fit.unwalked
             consensus = neighbour_consensus(first.q, torch.isfinite(first.sigma_q), ii, jj, tuple(depth.shape[-2:]))
@@ -296,13 +331,15 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
             if len(pick):
                 margins[k] = float(likelihood_margins(y1, y2, camera, fit.hypothesis, [origins[int(t)] for t in pick],
                                                       tile, fit.q[pick], band=band, window=seed_window, step=q_step,
-                                                      max_kernel=max_kernel).median())
+                                                      max_kernel=max_kernel,
+                                                      shift=None if shift is None else shift[pick]).median())
             if margins[k] < AMBIGUITY_MARGIN:  # the whole image: its fits and the model's seeds alike
                 out_c[k] = out_c[k].clamp_max(ambiguity_cap(confidence_scale))
     fitted = torch.zeros_like(depth, dtype=torch.bool)
     fitted[:, 0, ii, jj] = True
     pooled = None if pooling is None else pool_stage_map(out_d, out_c, confidence_scale, pooling)
-    return LikelihoodStageResult(out_d, out_c, fit_d, fit_s, fitted, chosen, slopes, biases, fit_raw, pooled, margins)
+    return LikelihoodStageResult(out_d, out_c, fit_d, fit_s, fitted, chosen, slopes, biases, fit_raw, pooled, margins,
+                                 registrations)
 
 
 class LikelihoodStage(nn.Module):
@@ -318,8 +355,8 @@ class LikelihoodStage(nn.Module):
         hypotheses: the PSFs to profile over instead of the family's, e.g. the one a focus sweep
             measured (:func:`tdfd.calibration.psf_model.psf_model_from_frames`, a camera file's
             ``psf_model``: :meth:`~tdfd.dfd.psf_hypotheses.PsfHypothesis.from_dict`).
-        black_level, seed_window, q_step, band, max_kernel, profile_tiles, walk, pooling, ambiguity: as for
-            :func:`likelihood_stage`.
+        black_level, seed_window, q_step, band, max_kernel, profile_tiles, walk, pooling, ambiguity, register:
+            as for :func:`likelihood_stage`.
     """
 
     def __init__(self, camera: Camera, tile: int = 64, stride: int = 32, confidence_scale: float = 0.01, *,
@@ -328,7 +365,7 @@ class LikelihoodStage(nn.Module):
                  black_level: float = 0.0, seed_window: float = SEED_WINDOW, q_step: float = Q_STEP,
                  band: float = 0.25, max_kernel: int = 65, profile_tiles: int = PROFILE_TILES, walk: int = 0,
                  pooling: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
-                 ambiguity: bool = False) -> None:
+                 ambiguity: bool = False, register: bool = False) -> None:
         super().__init__()
         if pooling is not None and not callable(pooling):
             raise InputError(f"pooling must be a callable (inverse_depth, scale) -> inverse_depth, got {pooling!r}")
@@ -343,7 +380,7 @@ class LikelihoodStage(nn.Module):
             self.hypotheses = psf_hypotheses(camera, family, wavelength_m)
         self.options = dict(black_level=float(black_level), seed_window=float(seed_window), q_step=float(q_step),
                             band=float(band), max_kernel=int(max_kernel), profile_tiles=int(profile_tiles),
-                            walk=int(walk), ambiguity=bool(ambiguity))
+                            walk=int(walk), ambiguity=bool(ambiguity), register=bool(register))
         if walk < 0:
             raise InputError(f"walk must be >= 0, got {walk}")
         inverse_depth_grid(camera, seed_window, q_step)  # bad options fail here, not on the first pair

@@ -63,7 +63,8 @@ AMBIGUITY_MARGIN = 0.0
 def likelihood_margins(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, hypothesis: PsfHypothesis,
                        origins: Sequence[tuple[int, int]], tile: int, q_fit: torch.Tensor, *, band: float = 0.25,
                        window: float = SEED_WINDOW, step: float = Q_STEP, max_kernel: int = 65,
-                       near: float = AMBIGUITY_NEAR, far: float = AMBIGUITY_FAR) -> torch.Tensor:
+                       near: float = AMBIGUITY_NEAR, far: float = AMBIGUITY_FAR,
+                       shift: torch.Tensor | None = None) -> torch.Tensor:
     """Each tile's log-likelihood margin (nats) of its fitted inverse depth over every one more than
     ``far`` (relative) from it (module documentation).
 
@@ -76,6 +77,8 @@ def likelihood_margins(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, hypot
         band, window, step, max_kernel: the fit's (:func:`~tdfd.dfd.seeded_fit.seeded_tile_fit`); the
             margins use every second hypothesis of its grid.
         near, far: the relative distances of :data:`AMBIGUITY_NEAR` and :data:`AMBIGUITY_FAR`.
+        shift: ``(T, 2)`` px, each tile's content in frame 2 against frame 1, as the fit used it
+            (:mod:`tdfd.dfd.pair_registration`); ``None``: registered frames.
 
     Returns:
         ``(T,)`` float64 margins: negative where a depth ``far`` away fits better; ``inf`` where the
@@ -93,9 +96,12 @@ def likelihood_margins(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, hypot
         return torch.zeros(0, dtype=torch.float64)
     grid = inverse_depth_grid(camera, window, step)[::2]
     size = kernel_side(camera, (hypothesis,), grid, max_kernel, tile)
+    if shift is not None and len(shift):  # the kernels' margin holds the shift (tile_cross_residual_nll)
+        size = max(size, 2 * math.ceil(float(shift.abs().max())) + 1)
     ks = kernel_pairs(camera, hypothesis, grid, size)
     unit = torch.ones(len(origins), dtype=torch.float64)
-    nll = tile_cross_residual_nll(y1, y2, ks[:, 0], ks[:, 1], unit, unit, origins, tile, band)  # (Q, T)
+    nll = tile_cross_residual_nll(y1, y2, ks[:, 0], ks[:, 1], unit, unit, origins, tile, band,
+                                  shift=shift)  # (Q, T)
     q = q_fit.to(torch.float64)
     close = seed_mask(grid, q, near)  # within near of the fit, at least the nearest hypothesis
     far_away = (grid[:, None] - q[None, :]).abs() > far * q[None, :]

@@ -148,8 +148,8 @@ def seeded_tile_fit(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, origins:
                     seed_q: torch.Tensor, hypotheses: Sequence[PsfHypothesis], *, window: float = SEED_WINDOW,
                     step: float = Q_STEP, band: float = 0.25, max_kernel: int = 65,
                     profile_tiles: int = PROFILE_TILES, profile_by: torch.Tensor | None = None,
-                    walk: int = 0, walk_tiles: torch.Tensor | None = None, walk_gain: float = WALK_GAIN
-                    ) -> SeededFit:
+                    walk: int = 0, walk_tiles: torch.Tensor | None = None, walk_gain: float = WALK_GAIN,
+                    shift: torch.Tensor | None = None) -> SeededFit:
     """The seeded fit of every tile of one image.
 
     Args:
@@ -174,6 +174,9 @@ def seeded_tile_fit(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, origins:
         walk_gain: the least gain of the walked minimum's log-likelihood, ``B log(NLL_edge /
             NLL_min)`` with ``B`` the tile's independent bins, over the first window's edge
             (:data:`WALK_GAIN`); a walked tile below it keeps its first fit (no weight).
+        shift: ``(T, 2)`` px, where each tile's content lies in frame 2 relative to frame 1
+            (:func:`~tdfd.dfd.cross_residual.tile_cross_residual_nll`; e.g. the pair's fitted
+            registration, :mod:`tdfd.dfd.pair_registration`); ``None``: registered frames.
 
     Raises:
         InputError: no hypothesis, seeds not ``(T,)`` finite and > 0, bad options.
@@ -206,7 +209,7 @@ def seeded_tile_fit(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, origins:
         ks = kernel_pairs(camera, hyp, grid[idx], size)
         nll = torch.full((len(grid), len(origins)), math.inf, dtype=torch.float64)
         nll[idx] = tile_cross_residual_nll(y1, y2, ks[:, 0], ks[:, 1], unit, unit, origins, tile, band,
-                                           mask=sub[idx])
+                                           mask=sub[idx], shift=shift)
         q, value, curvature = parabolic_minima(nll[:, tiles], grid)
         return q, value, curvature
 
