@@ -367,7 +367,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_write:
         cmd = (f".venv/bin/python -m benchmarks.bench_psf_structure --scenes {args.scenes} "
                f"--frames-per-power {args.frames_per_power} --sweep-chart {args.sweep_chart}"
-               + given_options(args, "scales", "bias_scales", "walk"))
+               + given_options(args, "scales", "bias_scales", "walk") + (" --register" if args.register else ""))
         update_section("psf_structure", "Structure targets with each lens's PSF measured from a focus sweep "
                                         "(issue 19)", body, cmd)
     return 0

@@ -92,8 +92,9 @@ def test_the_table_scores_each_group_away_from_edges_with_its_shared_error():
 
 
 def test_the_benchmark_refuses_a_walk_on_saved_fits(capsys):
-    with pytest.raises(SystemExit):
-        main(["--from-rows", "rows.pt", "--walk", "2", "--no-write"])
-    assert "--walk needs new fits" in capsys.readouterr().err
+    for option in (["--walk", "2"], ["--register"]):
+        with pytest.raises(SystemExit):
+            main(["--from-rows", "rows.pt", *option, "--no-write"])
+        assert "--walk and --register need new fits" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["--walk", "-1", "--no-write"])
