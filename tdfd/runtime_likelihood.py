@@ -68,8 +68,8 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
             (:mod:`tdfd.dfd.pair_registration`); a file that registers breathing needs it.
 
     Raises:
-        InputError: a file with focus breathing without ``register``, a runtime for another camera, a bad black level
-            or ``walk``.
+        InputError: a file with focus breathing without ``register``, a runtime for another camera, a
+            bad black level or ``walk``.
         CameraError: a ``psf_model`` that is not valid.
         ModelError: a scales file that cannot be read, a file without a positive
             ``confidence_scale`` in its metadata, or ``pool`` for a file without a structure pooling.

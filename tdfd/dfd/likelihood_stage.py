@@ -72,7 +72,7 @@ from ..errors import InputError, NonFiniteError, ShapeError
 from ..grid import grid_shape
 from .inverse_variance import LikelihoodScales, confidence_from_sigma, fuse, model_sigma, tile_slope
 from .psf_hypotheses import WAVELENGTH_M, PsfHypothesis, psf_hypotheses
-from .pair_registration import BREATHING_SCAN, SHIFT_SCAN_PX, fit_pair_registration, tile_shifts
+from .pair_registration import BREATHING_SCAN, SHIFT_SCAN_PX, centre_offsets, fit_pair_registration, tile_shifts
 from .shared_bias import bias_map
 from .scene_ambiguity import AMBIGUITY_MARGIN, ambiguity_cap, chosen_tiles, likelihood_margins
 from .stage_pooling import pool_stage_map
@@ -83,7 +83,8 @@ from .walk_gate import neighbour_consensus, walk_rejected
 #: bias profiles the registration's likelihood away from the tiles' depths), then the final fit
 REGISTRATION_PASSES = 2
 
-__all__ = ["REGISTRATION_PASSES", "LikelihoodStageResult", "valid_tiles", "fuse_with_fit", "likelihood_stage", "LikelihoodStage"]
+__all__ = ["REGISTRATION_PASSES", "LikelihoodStageResult", "valid_tiles", "fuse_with_fit", "likelihood_stage",
+           "LikelihoodStage"]
 
 
 @dataclass
@@ -247,8 +248,9 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
         register: fit each pair's focus breathing and shift to its own likelihood before the
             final fit (:mod:`tdfd.dfd.pair_registration`: :data:`REGISTRATION_PASSES` times a fit
             without a walk, registered as far as known, and the registration on its most
-            informative tiles; then the fit with frame 2 moved back by each tile's shift); the breathing is searched only as far as the tiles' margins (a
-            kernel's half-width) hold the shift of the tile farthest from the centre.
+            informative tiles; then the fit with frame 2 moved back by each tile's shift); the
+            breathing is searched only as far as the tiles' margins (a kernel's half-width) hold the
+            shift of the tile farthest from the centre.
 
     Returns:
         :class:`LikelihoodStageResult`.
@@ -279,8 +281,7 @@ def likelihood_stage(image_f1: torch.Tensor, image_f2: torch.Tensor, depth: torc
     margins = torch.full((b,), math.inf, dtype=torch.float64) if ambiguity else None
     registrations = torch.zeros(b, 3, dtype=torch.float64) if register else None
     if register and origins:
-        reach = float((torch.tensor([[r + (tile - 1) / 2 - (height - 1) / 2, c + (tile - 1) / 2 - (width - 1) / 2]
-                                     for r, c in origins]).abs().amax(0)).max())
+        reach = float(centre_offsets(origins, tile, (height, width)).abs().max())
         breathing_scan = min(BREATHING_SCAN, (half - SHIFT_SCAN_PX) / max(reach, 1.0))
         if breathing_scan <= 0:
             raise InputError(f"register needs kernels wider than twice the shift scan ({SHIFT_SCAN_PX} px); their "

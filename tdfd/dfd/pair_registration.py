@@ -45,8 +45,8 @@ from .psf_hypotheses import PsfHypothesis
 from .scene_ambiguity import chosen_tiles
 from .seeded_fit import kernel_pairs, kernel_side
 
-__all__ = ["REGISTRATION_TILES", "REGISTRATION_NEAR", "BREATHING_SCAN", "SHIFT_SCAN_PX", "tile_shifts",
-           "spread_tiles", "registration_objective", "fit_pair_registration"]
+__all__ = ["REGISTRATION_TILES", "REGISTRATION_NEAR", "BREATHING_SCAN", "SHIFT_SCAN_PX", "centre_offsets",
+           "tile_shifts", "spread_tiles", "registration_objective", "fit_pair_registration"]
 
 #: the most informative fitted tiles (least fit sigma, a quarter per quadrant) whose likelihood fits the
 #: registration
@@ -60,6 +60,20 @@ BREATHING_SCAN = 0.02
 SHIFT_SCAN_PX = 1.0
 #: hypotheses per tile in its profiled window
 HYPOTHESES = 5
+
+
+def centre_offsets(origins: Sequence[tuple[int, int]], tile: int, frame_shape: tuple[int, int]) -> torch.Tensor:
+    """``(T, 2)`` float64 px: each tile's centre less the frame's centre ``c`` (row, column), the
+    lever arm of the breathing.
+
+    Example:
+        >>> centre_offsets([(0, 0)], 64, (164, 264)).tolist()
+        [[-50.0, -100.0]]
+    """
+    centre = torch.tensor([(frame_shape[0] - 1) / 2, (frame_shape[1] - 1) / 2], dtype=torch.float64)
+    at = torch.tensor([[r + (tile - 1) / 2, c + (tile - 1) / 2] for r, c in origins],
+                      dtype=torch.float64).reshape(-1, 2)
+    return at - centre
 
 
 def tile_shifts(registration: torch.Tensor, origins: Sequence[tuple[int, int]], tile: int,
@@ -81,10 +95,7 @@ def tile_shifts(registration: torch.Tensor, origins: Sequence[tuple[int, int]], 
     if registration.shape != (3,):
         raise ShapeError(f"registration must be (3,) (beta, d_row, d_col), got {tuple(registration.shape)}")
     reg = registration.to(torch.float64)
-    centre = torch.tensor([(frame_shape[0] - 1) / 2, (frame_shape[1] - 1) / 2], dtype=torch.float64)
-    at = torch.tensor([[r + (tile - 1) / 2, c + (tile - 1) / 2] for r, c in origins],
-                      dtype=torch.float64).reshape(-1, 2)
-    return reg[0] * (at - centre) + reg[1:]
+    return reg[0] * centre_offsets(origins, tile, frame_shape) + reg[1:]
 
 
 def spread_tiles(sigma: torch.Tensor, origins: Sequence[tuple[int, int]], tile: int, frame_shape: tuple[int, int],
@@ -94,7 +105,7 @@ def spread_tiles(sigma: torch.Tensor, origins: Sequence[tuple[int, int]], tile: 
     others): tiles on both sides of the centre in both axes tell the breathing from the shift."""
     if sigma.shape != (len(origins),):
         raise ShapeError(f"sigma must be ({len(origins)},), got {tuple(sigma.shape)}")
-    offsets = tile_shifts(torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), origins, tile, frame_shape)
+    offsets = centre_offsets(origins, tile, frame_shape)
     quadrant = 2 * (offsets[:, 0] > 0).long() + (offsets[:, 1] > 0).long()
     picked = []
     for k in range(4):
@@ -173,8 +184,7 @@ def fit_pair_registration(y1: torch.Tensor, y2: torch.Tensor, camera: Camera, hy
     sub = [origins[int(t)] for t in pick]
     offsets = torch.linspace(-near, near, HYPOTHESES, dtype=torch.float64)
     qs = (q_fit[pick].to(torch.float64)[None, :] * (1 + offsets[:, None])).T.reshape(-1)  # tile-major
-    reach = (tile_shifts(torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), sub, tile, tuple(y1.shape))
-             .abs().amax(0).max())
+    reach = centre_offsets(sub, tile, tuple(y1.shape)).abs().max()
     largest = math.ceil(float(breathing_scan * reach) + shift_scan_px)  # the largest shift the search can try
     size = max(kernel_side(camera, (hypothesis,), qs, max_kernel, tile), 2 * largest + 1)  # its margin holds it
     kernels = kernel_pairs(camera, hypothesis, qs, size)
