@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from tdfd.dfd.cross_residual import tile_cross_residual_nll
+from tdfd.dfd.cross_residual import independent_bins, tile_cross_residual_nll
 from tdfd.dfd.likelihood_stage import LikelihoodStage, valid_tiles
 from tdfd.dfd.pair_registration import fit_pair_registration, registration_objective, tile_shifts
 from tdfd.dfd.psf_hypotheses import PsfHypothesis
@@ -89,6 +89,22 @@ def test_the_fit_finds_the_pairs_breathing_and_shift(pairs):
     at_fit = registration_objective(y1, y2, kernels, mask, origins[:3], 64, 0.25, reg)
     at_zero = registration_objective(y1, y2, kernels, mask, origins[:3], 64, 0.25, torch.zeros(3, dtype=F64))
     assert at_zero - at_fit > 50.0
+
+
+def test_a_minimum_on_its_windows_end_keeps_its_grid_value(pairs):
+    """The objective refines a tile's minimum by a parabola only inside its window: a tile whose
+    truth lies on its first hypothesis, the first row of the stacked windows, keeps that NLL."""
+    (y1, y2), _ = pairs
+    origins = _origins(32)[:1]
+    q = torch.full((3,), 1.0 / DEPTH, dtype=F64) * torch.tensor([1.0, 1.02, 1.04], dtype=F64)
+    kernels = _kernels(q)
+    mask = torch.ones(3, 1, dtype=torch.bool)
+    unit = torch.ones(1, dtype=F64)
+    nll = tile_cross_residual_nll(y1, y2, kernels[:, 0], kernels[:, 1], unit, unit, origins, 64, mask=mask)
+    assert int(nll[:, 0].argmin()) == 0
+    expected = independent_bins(64, 0.25) * math.log(float(nll[0, 0]))
+    got = registration_objective(y1, y2, kernels, mask, origins, 64, 0.25, torch.zeros(3, dtype=F64))
+    assert got == pytest.approx(expected, rel=1e-12)
 
 
 def test_too_few_fitted_tiles_leave_the_pair_as_it_is(pairs):

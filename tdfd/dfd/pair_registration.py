@@ -124,7 +124,8 @@ def registration_objective(y1: torch.Tensor, y2: torch.Tensor, kernels: torch.Te
                            origins: Sequence[tuple[int, int]], tile: int, band: float,
                            registration: torch.Tensor) -> float:
     """``sum_t B log min_q NLL_t(q)`` under ``registration`` (nats, up to a constant), each tile's
-    minimum over its hypotheses (``mask``'s column) refined by a parabola."""
+    minimum over its hypotheses (``mask``'s column) refined by a parabola where it lies inside them
+    (a minimum on a window's end keeps its grid value)."""
     shift = tile_shifts(registration, origins, tile, tuple(y1.shape))
     unit = torch.ones(len(origins), dtype=torch.float64)
     nll = tile_cross_residual_nll(y1, y2, kernels[:, 0], kernels[:, 1], unit, unit, origins, tile, band, mask=mask,
@@ -133,7 +134,8 @@ def registration_objective(y1: torch.Tensor, y2: torch.Tensor, kernels: torch.Te
     t = torch.arange(nll.shape[1])
     a, b, c = (nll[(k + d).clamp(0, nll.shape[0] - 1), t] for d in (-1, 0, 1))
     den = a - 2 * b + c
-    ok = torch.isfinite(a) & torch.isfinite(c) & (den > 0)
+    inside = (k > 0) & (k < nll.shape[0] - 1)  # the stack's two ends have no neighbour on one side
+    ok = inside & torch.isfinite(a) & torch.isfinite(c) & (den > 0)
     low = torch.where(ok, b - 0.125 * (a - c) ** 2 / torch.where(ok, den, torch.ones_like(den)), b)
     return float(independent_bins(tile, band) * torch.log(low.clamp_min(1e-300)).sum())
 
