@@ -4,7 +4,7 @@ Run from the repository root::
 
     .venv/bin/python -m benchmarks.bench_psf_structure [--scenes 128] [--frames-per-power 2]
         [--sweep-chart dead_leaves] [--scales S.json] [--bias-scales S.json] [--walk N] [--register] [--no-write]
-        [--rows R.pt] [--from-rows R.pt [--paired-with BASE.pt] [--skip-scenes N]]
+        [--rows R.pt] [--first-scene N] [--from-rows R.pt [R2.pt ...] [--paired-with BASE.pt] [--skip-scenes N]]
 
 The structure benchmark's scenes (section ``structure``: 480x640, seed 53000017, slanted planes,
 piecewise-planar layouts with occlusion edges, smooth surfaces; the whole world), each scene's
@@ -15,6 +15,10 @@ likelihood stage told the sweep's PSF (``calibrated``: ``tdfd depth --likelihood
 models/reference.likelihood-calibrated.json --psf-model CAM.json``) and its very fits fused
 again with the model's bias removed first (``calibrated_bias``:
 ``models/reference.likelihood-calibrated-bias.json``, :func:`benchmarks.stage_rows.refused`).
+With ``--register`` the stage fits each pair's focus breathing and shift first
+(``tdfd depth --likelihood-register``), and the scales default to those fitted so
+(``models/reference.likelihood-calibrated-registered.json`` and ``...-registered-bias.json``,
+``training.fit_likelihood_stage --register``); scales fitted the other way are used with a warning.
 
 Reports issue 19's three structure targets per layout and estimator (median error per tile
 <= 2 %; >= 50 % of the tiles at confidence >= 0.5 with a median error <= 1 % there), on the
@@ -32,6 +36,7 @@ run's rows of the same scenes (an A/B of a stage option, e.g. ``--walk``).
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import sys
 import time
@@ -55,6 +60,8 @@ from training.data import STRUCTURE_LAYOUTS
 
 __all__ = ["ESTIMATORS", "TARGET_HEADER", "merge_scenes", "refuse_rows", "with_plane_pooled", "target_rows",
            "difference_rows", "bound_rows", "information_table", "confidence_rows", "main"]
+
+log = logging.getLogger("benchmarks.bench_psf_structure")
 
 #: the estimators scored, in the tables' order (``<stage>_pooled``: its fused map pooled along the depth structure,
 #: :func:`benchmarks.psf_stages.refuse_rows`)
@@ -237,10 +244,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sweep-chart", default=SWEEP_CHART, choices=SWEEP_CHARTS,
                    help="the texture family the calibration sweeps see")
     p.add_argument("--model", default=str(ROOT / "models" / "reference"))
-    p.add_argument("--scales", default="", help="the calibrated stage's sigma factors "
-                                                "(default: MODEL.likelihood-calibrated.json)")
-    p.add_argument("--bias-scales", default="", help="the scales that remove the model's bias "
-                                                     "(default: MODEL.likelihood-calibrated-bias.json)")
+    p.add_argument("--scales", default="", help="the calibrated stage's sigma factors (default: "
+                                                "MODEL.likelihood-calibrated.json, with --register "
+                                                "MODEL.likelihood-calibrated-registered.json)")
+    p.add_argument("--bias-scales", default="", help="the scales that remove the model's bias (default: "
+                                                     "MODEL.likelihood-calibrated-bias.json, with --register "
+                                                     "MODEL.likelihood-calibrated-registered-bias.json)")
     p.add_argument("--register", action="store_true",
                    help="the stage fits each pair's focus breathing and shift first (tdfd depth --likelihood-register)")
     p.add_argument("--walk", type=int, default=0, metavar="N",
@@ -252,9 +261,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="with --from-rows: score only the scenes from N on (e.g. those an A/B was not designed on)")
     p.add_argument("--no-write", action="store_true", help="print only; leave docs/ alone")
     p.add_argument("--rows", default="", help="also save every scene's tiles and fits (torch.save)")
-    p.add_argument("--from-rows", default="", metavar="PATH",
-                   help="score the fits a run saved with --rows, fused again with --scales and --bias-scales, "
-                        "instead of running the sweeps and the stage (the fits do not depend on the scales)")
+    p.add_argument("--from-rows", nargs="+", default=[], metavar="PATH",
+                   help="score the fits runs saved with --rows (several: a run in parts, --first-scene), fused "
+                        "again with --scales and --bias-scales, instead of running the sweeps and the stage (the "
+                        "fits do not depend on the scales)")
+    p.add_argument("--first-scene", type=int, default=0, metavar="N",
+                   help="run only the scenes from N on (a long run in parts: save each part's --rows and score "
+                        "them together with --from-rows); implies --no-write")
     args = p.parse_args(argv)
     if not 1 <= args.scenes <= 1000 or args.frames_per_power < 1 or args.walk < 0:
         p.error("need 1 <= --scenes <= 1000, --frames-per-power >= 1 and --walk >= 0")
@@ -262,16 +275,27 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--from-rows fuses saved fits again; --walk and --register need new fits")
     if (args.paired_with or args.skip_scenes) and not args.from_rows:
         p.error("--paired-with and --skip-scenes score saved rows: give --from-rows")
+    if not 0 <= args.first_scene < args.scenes or (args.first_scene and args.from_rows):
+        p.error("need 0 <= --first-scene < --scenes, and --first-scene only for a run (not with --from-rows)")
+    if args.first_scene and not args.rows:
+        p.error("--first-scene runs part of the scenes: save them with --rows, to score with the other parts")
     if not 0 <= args.skip_scenes < args.scenes:
         p.error("need 0 <= --skip-scenes < --scenes")
     if args.skip_scenes and not (args.paired_with or args.no_write):
         p.error("--skip-scenes scores part of a run: print it (--no-write or --paired-with), the section keeps "
                 "every scene")
+    args.no_write = args.no_write or bool(args.first_scene)
     torch.set_num_threads(2)
     model = DFDModel.load(args.model)
-    paths = (args.scales or f"{args.model}.likelihood-calibrated.json",
-             args.bias_scales or f"{args.model}.likelihood-calibrated-bias.json")
+    fitted_as = "-registered" if args.register else ""
+    paths = (args.scales or f"{args.model}.likelihood-calibrated{fitted_as}.json",
+             args.bias_scales or f"{args.model}.likelihood-calibrated{fitted_as}-bias.json")
     scales, bias_scales = LikelihoodScales.load(paths[0]), LikelihoodScales.load(paths[1])
+    for path, s in zip(paths, (scales, bias_scales)):
+        if s.registered != args.register and not args.from_rows:  # an A/B of the scales may want this
+            log.warning("%s was fitted %s each pair's registration, this run's stage %s: its confidences are "
+                        "not the ones it states", path, "with" if s.registered else "without",
+                        "fits it (--register)" if args.register else "does not")
     if not bias_scales.shared_bias:
         p.error(f"{paths[1]} does not remove the model's bias (fitted without --shared-bias)")
     if model.structure_pooling is None:
@@ -279,7 +303,12 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     if args.from_rows:
         kept = range(args.skip_scenes, args.scenes)
-        rows = [r for r in torch.load(args.from_rows, weights_only=True) if r["scene"] in kept]
+        rows = [r for path in args.from_rows for r in torch.load(path, weights_only=True) if r["scene"] in kept]
+        have = sorted({(r["layout"], r["scene"]) for r in rows})
+        if len(have) != len(rows) or len(have) != len(STRUCTURE_LAYOUTS) * len(kept):
+            p.error(f"the rows of {' '.join(args.from_rows)} hold {len(rows)} scene(s), {len(have)} distinct, where "
+                    f"scenes {kept.start}-{kept.stop - 1} of {len(STRUCTURE_LAYOUTS)} layouts are "
+                    f"{len(STRUCTURE_LAYOUTS) * len(kept)}")
         if args.paired_with:
             base = refuse_rows([r for r in torch.load(args.paired_with, weights_only=True) if r["scene"] in kept],
                                model.confidence_scale, scales, bias_scales, model.structure_pooling)
@@ -294,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
     else:  # the profiled stage's scales are not used: only the calibrated stage runs
         rows = structure_rows(model, (scales, scales), args.scenes, args.frames_per_power, args.sweep_chart,
                               bias_scales, stages=("calibrated",), bound=True, walk=args.walk,
-                              register=args.register)
+                              register=args.register, first=args.first_scene)
     # the pooled stages (and, on saved fits, the fusion with these scales)
     rows = refuse_rows(rows, model.confidence_scale, scales, bias_scales, model.structure_pooling)
     wall = time.perf_counter() - t0
@@ -307,7 +336,8 @@ def main(argv: list[str] | None = None) -> int:
     shown = [repo_path(x) for x in paths]
     body = "\n".join([
         f"Machine: {machine()}; the structure benchmark's "
-        + (f"scenes {args.skip_scenes}-{args.scenes - 1}" if args.skip_scenes else f"first {args.scenes} scenes")
+        + (f"scenes {args.skip_scenes or args.first_scene}-{args.scenes - 1}" if args.skip_scenes or args.first_scene
+           else f"first {args.scenes} scenes")
         + f" per layout (480x640, seed "
         f"{STRUCTURE_SEED}, the whole world; the tiles in the working range; *away from edges* as in section "
         f"`structure`); wall time {wall:.0f} s"

@@ -74,9 +74,9 @@ def stages_for(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales
 def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodScales], scenes: int,
                    frames_per_power: int, chart: str = SWEEP_CHART, bias_scales: LikelihoodScales | None = None,
                    stages: tuple[str, ...] = STAGES, bound: bool = False, walk: int = 0,
-                   register: bool = False) -> list[dict]:
-    """Per 480x640 structure scene (the first ``scenes`` per layout, each one's lens calibrated
-    from its own sweep): its tiles in the working range, their true, model and each of ``stages``'
+                   register: bool = False, first: int = 0) -> list[dict]:
+    """Per 480x640 structure scene (the first ``scenes`` per layout, from scene ``first`` on: a long
+    run in parts; each one's lens calibrated from its own sweep): its tiles in the working range, their true, model and each of ``stages``'
     depth and confidence (with ``bias_scales`` :data:`BIAS_STAGE`'s too, from the ``calibrated``
     stage's fits), ``grids`` (the whole grid's ``keep`` mask, the model's map and each stage's
     :data:`FIT_FIELDS`, to fuse the same fits again), ``edge`` (within one tile of an occlusion edge,
@@ -87,11 +87,13 @@ def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodSc
     stages fit each pair's breathing and shift (:mod:`tdfd.dfd.pair_registration`).
 
     Raises:
-        ValueError: ``scenes`` over 1000 (the sweeps' seeds of two layouts would meet), or
-            ``bias_scales`` without the ``calibrated`` stage.
+        ValueError: ``scenes`` over 1000 (the sweeps' seeds of two layouts would meet), ``first``
+            not in ``0..scenes``, or ``bias_scales`` without the ``calibrated`` stage.
     """
     if not 0 <= scenes <= 1000:
         raise ValueError(f"structure scenes per layout must be in 0..1000 (the sweeps' seeds), got {scenes}")
+    if not 0 <= first <= scenes:
+        raise ValueError(f"the first scene must be in 0..{scenes} (the scenes per layout), got {first}")
     if bias_scales is not None and "calibrated" not in stages:
         raise ValueError(f"{BIAS_STAGE} re-fuses the calibrated stage's fits: stages {stages} lack it")
     near, far = model.camera.depth_range_m
@@ -100,7 +102,7 @@ def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodSc
     for layout in STRUCTURE_LAYOUTS:
         ds = textured_scenes(model.camera, model.tile, model.stride, layout, (480, 640), STRUCTURE_SEED,
                              return_sharp=bound)
-        for i in tqdm(range(scenes), desc=f"psf model: {layout}", mininterval=10.0):
+        for i in tqdm(range(first, scenes), desc=f"psf model: {layout}", mininterval=10.0):
             b = ds.batch([i])
             i1, i2 = b["image_f1"].float(), b["image_f2"].float()
             with torch.no_grad():

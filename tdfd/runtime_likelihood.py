@@ -65,7 +65,9 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
         ambiguity: also check each pair's fit against the likelihood over the whole range and cap
             the confidences of a pair it does not tell (:mod:`tdfd.dfd.scene_ambiguity`).
         register: fit each pair's focus breathing and shift to its own likelihood before the fit
-            (:mod:`tdfd.dfd.pair_registration`); a file that registers breathing needs it.
+            (:mod:`tdfd.dfd.pair_registration`); a file that registers breathing needs it. Scales
+            fitted the other way (:attr:`~tdfd.dfd.inverse_variance.LikelihoodScales.registered`) are
+            used with a warning.
 
     Raises:
         InputError: a file with focus breathing without ``register``, a runtime for another camera, a
@@ -99,6 +101,13 @@ def stage_for_runtime(rt: DepthRuntime, scales_path: str | Path, black_level: fl
     if scales.psf != told:
         log.warning("%s was fitted for the stage with the PSF %s, this one has it %s: the fusion's weights and "
                     "confidences will be off (%s)", scales_path, scales.psf, told, _SCALES_HINT[told])
+    if scales.registered != register:
+        log.warning("%s was fitted for the stage %s each pair's registration, this one %s it: the fusion's weights "
+                    "and confidences will be off (fit the scales %s --register%s)", scales_path,
+                    "fitting" if scales.registered else "without", "fits" if register else "does not fit",
+                    "with" if register else "without",
+                    ", or use the shipped models/reference.likelihood-calibrated-registered.json with --psf-model"
+                    if register else "")
     return LikelihoodStage(rt.camera, rt.tile, rt.stride, float(b0), scales=scales,
                            family=rt.psf_family, hypotheses=hypotheses, black_level=black_level, walk=walk,
                            pooling=pooling, ambiguity=ambiguity, register=register)

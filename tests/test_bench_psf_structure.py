@@ -12,7 +12,7 @@ from benchmarks.bench_psf_model import BIAS_STAGE
 from benchmarks.bench_psf_refused import refuse_planes
 from benchmarks.bench_psf_structure import bound_rows, difference_rows, main, merge_scenes, refuse_rows, target_rows
 from benchmarks.bench_structure import SCENE_ID_STEP
-from benchmarks.psf_stages import paired_with
+from benchmarks.psf_stages import paired_with, structure_rows
 from benchmarks.stage_rows import refuse
 from tdfd.dfd.stage_pooling import pool_stage_map
 from tdfd.model.structure_pooling import StructurePooling
@@ -164,3 +164,25 @@ def test_pairing_and_skipping_need_saved_rows(capsys):
     with pytest.raises(SystemExit):  # part of a run is printed, never written as the section
         main(["--from-rows", "r.pt", "--scenes", "4", "--skip-scenes", "2"])
     assert "--skip-scenes scores part of a run" in capsys.readouterr().err
+
+
+def test_a_run_in_parts_is_scored_only_whole(tmp_path, capsys):
+    """``--first-scene`` runs part of the scenes and must save them (never the section); the parts'
+    ``--from-rows`` files are scored together only when they hold every scene asked for, once."""
+    for argv, said in ((["--first-scene", "2", "--scenes", "4"], "save them with --rows"),
+                       (["--first-scene", "4", "--scenes", "4", "--rows", "r.pt"], "0 <= --first-scene < --scenes"),
+                       (["--first-scene", "2", "--scenes", "4", "--from-rows", "r.pt"], "only for a run")):
+        with pytest.raises(SystemExit):
+            main(argv)
+        assert said in capsys.readouterr().err
+    layouts = ("slanted", "layout", "smooth")
+    torch.save([_scene(k, i) for k in layouts for i in (0, 1)], tmp_path / "a.pt")
+    torch.save([_scene(k, i) for k in layouts for i in (2, 3)], tmp_path / "b.pt")
+    for parts, said in (([tmp_path / "a.pt"], "hold 6 scene(s), 6 distinct, where scenes 0-3 of 3 layouts are 12"),
+                        ([tmp_path / "a.pt", tmp_path / "a.pt"], "hold 12 scene(s), 6 distinct")):
+        with pytest.raises(SystemExit):
+            main(["--from-rows", *map(str, parts), "--scenes", "4", "--no-write"])
+        assert said in capsys.readouterr().err
+    for first in (-1, 5):
+        with pytest.raises(ValueError, match="first scene must be in 0..4"):
+            structure_rows(None, (None, None), 4, 1, first=first)

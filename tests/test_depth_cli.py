@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-
+import logging
 import os
 import subprocess
 import sys
@@ -370,7 +370,7 @@ def test_the_stage_pools_with_the_files_own_pooling(shipped_onnx):
         stage_for_runtime(bare, scales, pool=True)
 
 
-def test_a_file_that_registers_breathing_needs_the_stages_own_registration(shipped_onnx):
+def test_a_file_that_registers_breathing_needs_the_stages_own_registration(shipped_onnx, tmp_path, caplog):
     rt = DepthRuntime(shipped_onnx)
     scales = ROOT / "models" / "reference.likelihood.json"
     breathing = SimpleNamespace(**{k: getattr(rt, k) for k in ("inverse_depth_offset_dpt", "camera", "tile", "stride",
@@ -378,8 +378,22 @@ def test_a_file_that_registers_breathing_needs_the_stages_own_registration(shipp
                                 magnification_per_dpt=0.004)
     with pytest.raises(InputError, match="likelihood-register"):
         stage_for_runtime(breathing, scales)
-    assert stage_for_runtime(breathing, scales, register=True).options["register"] is True
-    assert stage_for_runtime(rt, scales).options["register"] is False
+    with caplog.at_level(logging.WARNING, logger="tdfd"):
+        assert stage_for_runtime(breathing, scales, register=True).options["register"] is True
+    assert "fitted for the stage without each pair's registration, this one fits it" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="tdfd"):
+        assert stage_for_runtime(rt, scales).options["register"] is False
+    assert "registration" not in caplog.text
+    registered = tmp_path / "registered.json"
+    registered.write_text(json.dumps({**json.loads(scales.read_text()), "format": "tdfd.likelihood_scales/5",
+                                      "registered": True}))
+    with caplog.at_level(logging.WARNING, logger="tdfd"):
+        stage_for_runtime(breathing, registered, register=True)
+    assert "registration" not in caplog.text
+    with caplog.at_level(logging.WARNING, logger="tdfd"):
+        stage_for_runtime(rt, registered)
+    assert "fitted for the stage fitting each pair's registration, this one does not fit it" in caplog.text
 
 
 def test_likelihood_stage_takes_the_measured_psf_model(plane_pairs, shipped_onnx, tmp_path, capsys, caplog):

@@ -104,6 +104,20 @@ def test_the_fit_writes_a_scales_file_with_its_provenance(tmp_path, monkeypatch)
     assert "focus sweep of a dead_leaves chart (1 frame(s) per power" in measured.provenance["psf"]
     with pytest.raises(SystemExit):
         main(["--model", str(stem), "--planes", "1", "--calibrated-psf", "-1"])
+    # --register: the stage fits each pair's registration, and the file says so
+    stages, for_model = [], fls.LikelihoodStage.for_model
+
+    def spy_stage(model, **kwargs):
+        stages.append(kwargs)
+        return for_model(model, **kwargs)
+
+    monkeypatch.setattr(fls.LikelihoodStage, "for_model", spy_stage)
+    assert main(["--model", str(stem), "--planes", "1", "--scenes", "0", "--register", "--out",
+                 str(tmp_path / "r.json")]) == 0
+    assert stages == [{"register": True}]
+    registered = LikelihoodScales.load(tmp_path / "r.json")
+    assert registered.registered and "--register --out" in registered.provenance["command"]
+    assert not scales.registered and not measured.registered
 
 
 def test_saved_errors_refit_to_the_scales_a_full_run_gives(tmp_path):
@@ -131,6 +145,14 @@ def test_saved_errors_refit_to_the_scales_a_full_run_gives(tmp_path):
         main(["--model", str(stem), "--planes", "3", "--scenes", "0", "--errors", str(saved)])
     with pytest.raises(ValueError, match="calibrated_psf: file 0, asked 2"):
         main(base + ["--calibrated-psf", "2", "--errors", str(saved)])
+    with pytest.raises(ValueError, match="register: file False, asked True"):
+        main(base + ["--register", "--errors", str(saved)])
+    data = torch.load(saved, weights_only=True)
+    del data["settings"]["register"]  # a file from before --register: collected without it
+    torch.save(data, tmp_path / "old.pt")
+    assert main(base + ["--shared-bias", "--out", str(tmp_path / "old.json"),
+                        "--errors", str(tmp_path / "old.pt")]) == 0
+    assert LikelihoodScales.load(tmp_path / "old.json").fit == full.fit
     data = torch.load(saved, weights_only=True)
     del data["errors"]["slope"]
     torch.save(data, tmp_path / "short.pt")
@@ -161,6 +183,7 @@ def test_the_fused_scales_map_makes_the_correlated_fusion_state_its_error():
     errors = _correlated_errors()
     scales = fit_scales(errors, slope_edges=(), remove_bias=False)
     err, b = fused_errors(errors, scales)
+    assert len(decile_ratios(err[:3], b[:3])) == 3 and decile_ratios(err[:0], b[:0]) == []  # fewer tiles than bins
     before = decile_ratios(err, b)
     # correlation 0.5 between equal sigmas: the fused variance is 1.5x what independence says
     assert min(before) > 1.1

@@ -286,7 +286,7 @@ def test_the_stage_rejects_bad_input_with_typed_errors():
 def test_scales_keep_the_shared_bias_flag_and_read_version_1(tmp_path):
     s = LikelihoodScales((1.5, 3.0), (0.7, 0.6), (0.02,), shared_bias=True)
     s.save(tmp_path / "s.json")
-    assert json.loads((tmp_path / "s.json").read_text())["format"] == "tdfd.likelihood_scales/4"
+    assert json.loads((tmp_path / "s.json").read_text())["format"] == "tdfd.likelihood_scales/5"
     assert LikelihoodScales.load(tmp_path / "s.json").shared_bias is True
     LikelihoodScales(2.0, 0.5, shared_bias=True, bias_radius=2).save(tmp_path / "r.json")
     assert LikelihoodScales.load(tmp_path / "r.json").bias_radius == 2
@@ -298,6 +298,20 @@ def test_scales_keep_the_shared_bias_flag_and_read_version_1(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps({"format": "tdfd.likelihood_scales/2", "fit": 2.0, "model": 0.5,
                                                    "shared_bias": "yes"}))
     with pytest.raises(ModelError):
+        LikelihoodScales.load(tmp_path / "bad.json")
+
+
+def test_scales_keep_the_registered_flag_and_read_version_4_as_unregistered(tmp_path):
+    LikelihoodScales(2.0, 0.5, registered=True).save(tmp_path / "r.json")
+    assert LikelihoodScales.load(tmp_path / "r.json").registered is True
+    assert LikelihoodScales(2.0, 0.5).registered is False
+    (tmp_path / "v4.json").write_text(json.dumps({"format": "tdfd.likelihood_scales/4", "fit": 2.0, "model": 0.5}))
+    assert LikelihoodScales.load(tmp_path / "v4.json").registered is False
+    with pytest.raises(InputError, match="registered"):
+        LikelihoodScales(2.0, 0.5, registered=1)
+    (tmp_path / "bad.json").write_text(json.dumps({"format": "tdfd.likelihood_scales/5", "fit": 2.0, "model": 0.5,
+                                                   "registered": "yes"}))
+    with pytest.raises(ModelError, match="registered"):
         LikelihoodScales.load(tmp_path / "bad.json")
 
 

@@ -3,7 +3,7 @@
 Run from the repository root (the shipped model's command and log: ``models/README.md``)::
 
     .venv/bin/python -m training.fit_likelihood_stage --model models/reference [--planes 128] [--scenes 6]
-        [--calibrated-psf FRAMES]
+        [--calibrated-psf FRAMES] [--register]
 
 The likelihood stage (:mod:`tdfd.dfd.likelihood_stage`) fuses the model's map with each tile's
 cross-residual fit by inverse variance. Both sigmas are off by a factor (the fit's tapered bins
@@ -34,6 +34,10 @@ slope, ``+ g(log max(slope, 1e-4))`` in ``--fused-slope-bins`` equal-count bands
 the first (:func:`tdfd.model.scale_calibration_fit.fit_covariate_calibration`): with the scale
 part alone the planes' most confident tiles erred half what it stated and the occlusion layouts'
 more (the fit takes each tile for fronto-parallel, and the planes' tiles are flat).
+
+With ``--register`` each scene's stage fits the pair's focus breathing and shift first
+(:mod:`tdfd.dfd.pair_registration`): the scales of ``tdfd depth --likelihood-register`` (the file's
+``registered`` is then true; the fit's errors, hence its factors, change with it).
 
 With ``--calibrated-psf FRAMES`` each scene's stage is told its own lens's PSF as a focus sweep
 measures it (:func:`training.calibrated_lens.sweep_fit`, FRAMES frames per power), not the PSF
@@ -107,33 +111,34 @@ def black_levels(params: list[dict]) -> list[float]:
     return [float(p["black_level_dn"]) / (2.0 ** int(p["bits"]) - 1.0) for p in params]
 
 
-def _calibrated_stage(model: DFDModel, params: dict, frames_per_power: int, seed: int, chart: str = SWEEP_CHART
-                      ) -> LikelihoodStage:
+def _calibrated_stage(model: DFDModel, params: dict, frames_per_power: int, seed: int, chart: str = SWEEP_CHART,
+                      register: bool = False) -> LikelihoodStage:
     """The stage told the PSF of a scene's lens (``params``) as a focus sweep of ``chart`` with
     ``frames_per_power`` frames per power measures it (:func:`training.calibrated_lens.sweep_fit`)."""
     fit = sweep_fit(model.camera, sample_psf_model(params), seed, frames_per_power, chart)
-    return LikelihoodStage.for_model(model, hypotheses=(fit.hypothesis,))
+    return LikelihoodStage.for_model(model, hypotheses=(fit.hypothesis,), register=register)
 
 
 @torch.no_grad()
 def collect_stage_errors(model: DFDModel, planes: int, scenes: int, calibrated_psf: int = 0,
-                         sweep_chart: str = SWEEP_CHART) -> dict[str, torch.Tensor]:
+                         sweep_chart: str = SWEEP_CHART, register: bool = False) -> dict[str, torch.Tensor]:
     """The fit's and the model's relative errors (``q_true / q - 1``, the depth's) and raw
     sigmas on every fitted tile in the working range of the calibration scenes; ``set``: 0
     planes, 1.. the structure layouts; ``image``: the image's running index; ``row``, ``col``:
     the tile's cell on the grid. ``calibrated_psf`` > 0: each scene's stage is told its lens's
     PSF as a focus sweep with that many frames per power measures it (seed
     :data:`CALIBRATION_SWEEP_SEED` + 100000 x set + scene; the chart ``sweep_chart``); 0: the PSF
-    profiled, as shipped."""
+    profiled, as shipped. ``register``: the stage fits each pair's focus breathing and shift
+    first (:mod:`tdfd.dfd.pair_registration`; the scales of ``tdfd depth --likelihood-register``)."""
     model.eval()
     near, far = model.camera.depth_range_m
     out: dict[str, list[torch.Tensor]] = {k: [] for k in ERROR_COLUMNS}
-    profiled = LikelihoodStage.for_model(model)  # raw sigmas: the factors are what this fits
+    profiled = LikelihoodStage.for_model(model, register=register)  # raw sigmas: the factors are what this fits
     for k, (name, ds, count, _) in enumerate(calibration_scene_sets(model, planes, scenes)):
         for i in tqdm(range(count), desc=f"likelihood stage: {name}", mininterval=10.0):
             s = ds.batch([i])
             stage = (_calibrated_stage(model, s["params"][0], calibrated_psf,
-                                       CALIBRATION_SWEEP_SEED + 100_000 * k + i, sweep_chart)
+                                       CALIBRATION_SWEEP_SEED + 100_000 * k + i, sweep_chart, register)
                      if calibrated_psf else profiled)
             i1, i2 = s["image_f1"].float(), s["image_f2"].float()
             depth, conf = model.analyse(i1, i2).depth_map
@@ -246,15 +251,16 @@ def fit_fused_scale_map(error: torch.Tensor, scale: torch.Tensor, scales: Likeli
 
 def decile_ratios(error: torch.Tensor, scale: torch.Tensor, bins: int = 10) -> list[float]:
     """Per equal-count bin of ``scale`` (the most confident last): the observed median ``|error|``
-    over the Laplace mixture median of the bin's scales (1 where the scale is calibrated)."""
+    over the Laplace mixture median of the bin's scales (1 where the scale is calibrated); fewer
+    tiles than ``bins``: one bin per tile (none without tiles)."""
     order = torch.argsort(scale, descending=True, stable=True)
     return [float(error[part].abs().median()) / laplace_mixture_median(scale[part])
-            for part in torch.tensor_split(order, bins)]
+            for part in torch.tensor_split(order, min(bins, order.numel()))] if order.numel() else []
 
 
 def save_stage_errors(path: str | Path, errors: dict[str, torch.Tensor], settings: dict, wall_s: float = 0.0) -> None:
     """Save :func:`collect_stage_errors`'s columns with the ``settings`` that collected them
-    (model, planes, scenes, calibrated_psf, sweep_chart) and the collection's ``wall_s``, for
+    (model, planes, scenes, calibrated_psf, sweep_chart, register) and the collection's ``wall_s``, for
     :func:`load_stage_errors`."""
     torch.save({"settings": dict(settings), "wall_s": float(wall_s),
                 "errors": {k: errors[k].contiguous() for k in ERROR_COLUMNS}}, path)
@@ -278,6 +284,7 @@ def load_stage_errors(path: str | Path, settings: dict) -> tuple[dict[str, torch
     lengths = {errors[k].numel() for k in ERROR_COLUMNS}
     if len(lengths) != 1:
         raise ValueError(f"{path}: the errors file's columns differ in length ({sorted(lengths)})")
+    saved = {"register": False, **saved}  # files from before --register were collected without it
     differ = [f"{k}: file {saved.get(k)!r}, asked {v!r}" for k, v in settings.items() if saved.get(k) != v]
     if differ:
         raise ValueError(f"{path} was collected with other settings ({'; '.join(differ)})")
@@ -311,6 +318,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="fit on errors a run with --save-errors collected instead of collecting them (the scenes, "
                         "PSF and chart are the file's; --planes, --scenes, --calibrated-psf, --sweep-chart must "
                         "match it)")
+    p.add_argument("--register", action="store_true",
+                   help="the stage fits each pair's focus breathing and shift first (the scales of "
+                        "`tdfd depth --likelihood-register`; default: the pairs taken as registered)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if (args.planes < 1 or args.scenes < 0 or args.bias_radius < 0 or args.fused_bins == 1 or args.fused_bins < 0
@@ -321,11 +331,12 @@ def main(argv: list[str] | None = None) -> int:
     model = DFDModel.load(args.model)
     t0 = time.perf_counter()
     settings = {"model": args.model, "planes": args.planes, "scenes": args.scenes,
-                "calibrated_psf": args.calibrated_psf, "sweep_chart": args.sweep_chart}
+                "calibrated_psf": args.calibrated_psf, "sweep_chart": args.sweep_chart, "register": args.register}
     if args.errors:
         errors, collection_wall = load_stage_errors(args.errors, settings)
     else:
-        errors = collect_stage_errors(model, args.planes, args.scenes, args.calibrated_psf, args.sweep_chart)
+        errors = collect_stage_errors(model, args.planes, args.scenes, args.calibrated_psf, args.sweep_chart,
+                                      args.register)
         if args.save_errors:
             save_stage_errors(args.save_errors, errors, settings, time.perf_counter() - t0)
     fitted = fit_scales(errors, remove_bias=args.shared_bias, bias_radius=args.bias_radius or None)
@@ -357,6 +368,7 @@ def main(argv: list[str] | None = None) -> int:
                    + (f" --calibrated-psf {args.calibrated_psf}" if args.calibrated_psf else "")
                    + (f" --sweep-chart {args.sweep_chart}" if args.calibrated_psf and args.sweep_chart != SWEEP_CHART
                       else "")
+                   + (" --register" if args.register else "")
                    + (f" --out {args.out}" if args.out else "")
                    + (f" --errors {args.errors}" if args.errors else ""),
         "planes": args.planes, "scenes_per_layout": args.scenes, "plane_seed": PLANE_SEED,
@@ -383,7 +395,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.errors:
         provenance["errors_collection_wall_s"] = round(collection_wall, 1)
     path = Path(args.out or f"{args.model}.likelihood.json")
-    dataclasses.replace(fitted, provenance=provenance, psf="measured" if args.calibrated_psf else "profiled").save(path)
+    dataclasses.replace(fitted, provenance=provenance, psf="measured" if args.calibrated_psf else "profiled",
+                        registered=args.register).save(path)
     logger.info("fit sigma factors %s, model sigma factors %s (slope bands at %s, %s tiles) on %d tiles (%s); fused "
                 "scale's decile ratios (most confident last) %s before its map, %s after; %.0f s; wrote %s",
                 [round(x, 4) for x in fitted.fit], [round(x, 4) for x in fitted.model], fitted.slope_edges,

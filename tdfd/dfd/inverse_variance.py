@@ -44,9 +44,10 @@ __all__ = ["MEDIAN_ABS_NORMAL", "SCALES_FORMAT", "SCALES_PSF", "SLOPE_FLOOR", "m
 #: The median of ``|x|`` for a standard normal ``x``.
 MEDIAN_ABS_NORMAL = 0.6744897501960817
 #: The ``format`` of a scales file (versions 1, before ``shared_bias``, 2, before the fused
-#: scale's map, and 3, before its slope part, still load: without them).
-SCALES_FORMAT = "tdfd.likelihood_scales/4"
-_FORMATS = ("tdfd.likelihood_scales/1", "tdfd.likelihood_scales/2", "tdfd.likelihood_scales/3", SCALES_FORMAT)
+#: scale's map, 3, before its slope part, and 4, before ``registered``, still load: without them).
+SCALES_FORMAT = "tdfd.likelihood_scales/5"
+_FORMATS = ("tdfd.likelihood_scales/1", "tdfd.likelihood_scales/2", "tdfd.likelihood_scales/3",
+            "tdfd.likelihood_scales/4", SCALES_FORMAT)
 #: the slope below which the fused scale's slope part reads the slope as this (a flat map's slope is 0)
 SLOPE_FLOOR = 1e-4
 #: the PSFs a scales file can be fitted for (:attr:`LikelihoodScales.psf`); a file without the key: profiled
@@ -151,6 +152,9 @@ class LikelihoodScales:
         psf: the PSF the stage was told while they were fitted: ``"profiled"`` (over the family's
             shapes, as shipped) or ``"measured"`` (each lens's own, from a focus sweep, as
             ``tdfd depth --psf-model`` tells it); the fit's errors, hence its factors, differ.
+        registered: whether the stage fitted each pair's focus breathing and shift while they
+            were fitted (:mod:`tdfd.dfd.pair_registration`, ``tdfd depth --likelihood-register``);
+            the fit's sigma then holds what the registration leaves, so its factors differ.
         provenance: how they were fitted (command, data, counts); free-form, saved with them.
 
     Example:
@@ -170,6 +174,7 @@ class LikelihoodScales:
     fused_log_slope: tuple[float, ...] | None = field(default=None, kw_only=True)
     fused_slope_log_shift: tuple[float, ...] | None = field(default=None, kw_only=True)
     psf: str = field(default="profiled", kw_only=True)
+    registered: bool = field(default=False, kw_only=True)
 
     def __post_init__(self) -> None:
         bands = len(self.slope_edges) + 1
@@ -188,6 +193,8 @@ class LikelihoodScales:
             raise InputError(f"psf must be one of {SCALES_PSF}, got {self.psf!r}")
         if not isinstance(self.shared_bias, bool):
             raise InputError(f"shared_bias must be a bool, got {self.shared_bias!r}")
+        if not isinstance(self.registered, bool):
+            raise InputError(f"registered must be a bool, got {self.registered!r}")
         if self.bias_radius is not None and not (isinstance(self.bias_radius, int) and self.bias_radius >= 1):
             raise InputError(f"bias_radius must be an int >= 1 (tiles) or None, got {self.bias_radius!r}")
         if (self.fused_log_b is None) != (self.fused_log_b_calibrated is None):
@@ -277,7 +284,7 @@ class LikelihoodScales:
                        fused_log_b=data.get("fused_log_b"), fused_log_b_calibrated=data.get("fused_log_b_calibrated"),
                        fused_log_slope=data.get("fused_log_slope"),
                        fused_slope_log_shift=data.get("fused_slope_log_shift"),
-                       psf=data.get("psf", "profiled"),
+                       psf=data.get("psf", "profiled"), registered=data.get("registered", False),
                        provenance=dict(data.get("provenance") or {}))
         except (KeyError, TypeError, InputError) as e:
             raise ModelError(f"{path}: bad likelihood scales ({e})") from e
