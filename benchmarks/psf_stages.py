@@ -76,10 +76,11 @@ def structure_rows(model: DFDModel, scales: tuple[LikelihoodScales, LikelihoodSc
                    stages: tuple[str, ...] = STAGES, bound: bool = False, walk: int = 0,
                    register: bool = False, first: int = 0) -> list[dict]:
     """Per 480x640 structure scene (the first ``scenes`` per layout, from scene ``first`` on: a long
-    run in parts; each one's lens calibrated from its own sweep): its tiles in the working range, their true, model and each of ``stages``'
-    depth and confidence (with ``bias_scales`` :data:`BIAS_STAGE`'s too, from the ``calibrated``
-    stage's fits), ``grids`` (the whole grid's ``keep`` mask, the model's map and each stage's
-    :data:`FIT_FIELDS`, to fuse the same fits again), ``edge`` (within one tile of an occlusion edge,
+    run in parts; each one's lens calibrated from its own sweep): its tiles in the working range,
+    their true, model and each of ``stages``' depth and confidence (with ``bias_scales``
+    :data:`BIAS_STAGE`'s too, from the ``calibrated`` stage's fits), ``grids`` (the whole grid's
+    ``keep`` mask, the model's map and each stage's :data:`FIT_FIELDS`, to fuse the same fits
+    again), ``edge`` (within one tile of an occlusion edge,
     :func:`benchmarks.depth_edges.edge_tiles`) and with ``bound`` ``bound_shared``: the tile's
     relative depth standard deviation at the Cramér-Rao reference of section ``structure``
     (:func:`benchmarks.bench_bound.tile_fisher`, the PSF shared by the image; NaN near edges).
